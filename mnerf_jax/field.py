@@ -1,0 +1,154 @@
+"""The TensoRF VM field: density, appearance features and the MLP_Fea colour decoder.
+
+Params pytree::
+
+    {"density": VMGrid, "appearance": VMGrid,
+     "basis": [C0 + C1 + C2 (appearance), app_features],        # Linear without bias
+     "mlp": {"w0": [in, W], "b0": [W], "w1": [W, W], "b1": [W], "w2": [W, 3], "b2": [3]}}
+
+The MLP may also hold ``"out_extra" [E, 3]`` (rows of the last layer met by ``extra_last``) and
+``"in_extra" [E, W]`` (rows of the first layer met by ``extra_first``); the watermark module adds them.
+Points given to the field are normalised to [-1, 1] over the scene aabb (see ``grids``).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+
+from mnerf_jax import grids
+from mnerf_jax.config import ModelConfig
+
+Array = jax.Array
+Params = dict
+
+
+def _torch_linear(key: Array, fan_in: int, fan_out: int, bias: bool = True) -> tuple[Array, Array | None]:
+    """torch.nn.Linear's default init: weight and bias ~ U(-1/sqrt(fan_in), 1/sqrt(fan_in))."""
+    bound = 1.0 / math.sqrt(fan_in)
+    kw, kb = jax.random.split(key)
+    w = jax.random.uniform(kw, (fan_in, fan_out), jnp.float32, -bound, bound)
+    b = jax.random.uniform(kb, (fan_out,), jnp.float32, -bound, bound) if bias else None
+    return w, b
+
+
+def mlp_in_features(cfg: ModelConfig) -> int:
+    """Input width of MLP_Fea: ``F + 3 + 2 F pe_features + 2 * 3 pe_view`` (150 for Blender)."""
+    f = cfg.app_features
+    return f + 3 + 2 * f * cfg.pe_features + 2 * 3 * cfg.pe_view
+
+
+def init_mlp(key: Array, cfg: ModelConfig) -> dict[str, Array]:
+    """MLP_Fea weights: Linear(in, W) -> ReLU -> Linear(W, W) -> ReLU -> Linear(W, 3), last bias 0."""
+    k0, k1, k2 = jax.random.split(key, 3)
+    width = cfg.mlp_width
+    w0, b0 = _torch_linear(k0, mlp_in_features(cfg), width)
+    w1, b1 = _torch_linear(k1, width, width)
+    w2, _ = _torch_linear(k2, width, 3)
+    return {"w0": w0, "b0": b0, "w1": w1, "b1": b1, "w2": w2, "b2": jnp.zeros((3,), jnp.float32)}
+
+
+def init_field(key: Array, model_cfg: ModelConfig, resolution: tuple[int, int, int]) -> Params:
+    """Fresh TensoRF VM field at ``resolution (X, Y, Z)`` grid nodes.
+
+    Returns ``{"density", "appearance", "basis" [sum(appearance_ranks), app_features], "mlp"}``.
+    """
+    return _init_field(key, model_cfg, tuple(int(r) for r in resolution))
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _init_field(key: Array, model_cfg: ModelConfig, resolution: tuple[int, ...]) -> Params:
+    kd, ka, kb, km = jax.random.split(key, 4)
+    n_app = sum(model_cfg.appearance_ranks)
+    basis, _ = _torch_linear(kb, n_app, model_cfg.app_features, bias=False)
+    return {
+        "density": grids.init_vm(kd, resolution, model_cfg.density_ranks, model_cfg.init_scale),
+        "appearance": grids.init_vm(ka, resolution, model_cfg.appearance_ranks, model_cfg.init_scale),
+        "basis": basis,
+        "mlp": init_mlp(km, model_cfg),
+    }
+
+
+def density_activation(feature: Array, cfg: ModelConfig) -> Array:
+    """Feature to density: ``softplus(feature + density_shift)`` or ``relu(feature)``."""
+    if cfg.density_activation == "softplus":
+        return jax.nn.softplus(feature + cfg.density_shift)
+    if cfg.density_activation == "relu":
+        return jax.nn.relu(feature)
+    raise ValueError(f"unknown density_activation {cfg.density_activation!r} (softplus | relu)")
+
+
+def density(params: Params, xyz: Array, cfg: ModelConfig) -> Array:
+    """Volume density σ ``[P]`` (per unit length before the distance scale) at normalised ``xyz [P, 3]``."""
+    return density_activation(grids.sample_vm_sum(params["density"], xyz), cfg)
+
+
+def appearance_features(params: Params, xyz: Array) -> Array:
+    """Appearance features ``[P, app_features]``: VM component products through the basis matrix."""
+    return grids.sample_vm(params["appearance"], xyz) @ params["basis"]
+
+
+def positional_encoding(x: Array, n_freqs: int) -> Array:
+    """TensoRF's encoding ``[sin(x_d 2^k)] ++ [cos(x_d 2^k)]`` (no π), index ``d * n_freqs + k``.
+
+    ``x [P, D]`` -> ``[P, 2 D n_freqs]``.
+    """
+    freqs = 2.0 ** jnp.arange(n_freqs, dtype=jnp.float32)
+    scaled = (x[..., :, None] * freqs).reshape(*x.shape[:-1], x.shape[-1] * n_freqs)
+    return jnp.concatenate([jnp.sin(scaled), jnp.cos(scaled)], axis=-1)
+
+
+def mlp_inputs(features: Array, viewdirs: Array, cfg: ModelConfig) -> Array:
+    """MLP_Fea input ``[features, viewdirs, PE(features), PE(viewdirs)]`` (PE parts omitted at 0)."""
+    parts = [features, viewdirs]
+    if cfg.pe_features > 0:
+        parts.append(positional_encoding(features, cfg.pe_features))
+    if cfg.pe_view > 0:
+        parts.append(positional_encoding(viewdirs, cfg.pe_view))
+    return jnp.concatenate(parts, axis=-1)
+
+
+def colour_mlp(
+    mlp: dict[str, Array],
+    features: Array,
+    viewdirs: Array,
+    cfg: ModelConfig,
+    extra_last: Array | None = None,
+    extra_first: Array | None = None,
+) -> Array:
+    """MLP_Fea colour ``[P, 3]`` in (0, 1).
+
+    Args:
+      mlp: MLP weights (see the module docstring).
+      features: ``[P, app_features]`` appearance features.
+      viewdirs: ``[P, 3]`` unit view directions.
+      cfg: model config (PE frequencies).
+      extra_last: optional ``[P, E]``, concatenated to the last hidden activation and met by the rows
+        ``mlp["out_extra"] [E, 3]`` of the last layer.
+      extra_first: optional ``[P, E]``, concatenated to the input and met by ``mlp["in_extra"] [E, W]``.
+
+    With both extras None this is exactly TensoRF's MLPRender_Fea.
+    """
+    x = mlp_inputs(features, viewdirs, cfg)
+    h = x @ mlp["w0"] + mlp["b0"]
+    if extra_first is not None:
+        h = h + extra_first @ mlp["in_extra"]
+    h = jax.nn.relu(h)
+    h = jax.nn.relu(h @ mlp["w1"] + mlp["b1"])
+    out = h @ mlp["w2"] + mlp["b2"]
+    if extra_last is not None:
+        out = out + extra_last @ mlp["out_extra"]
+    return jax.nn.sigmoid(out)
+
+
+def colour(params: Params, xyz: Array, viewdirs: Array, cfg: ModelConfig) -> Array:
+    """TensoRF colour ``[P, 3]`` at normalised ``xyz [P, 3]`` seen along unit ``viewdirs [P, 3]``."""
+    return colour_mlp(params["mlp"], appearance_features(params, xyz), viewdirs, cfg)
+
+
+def param_count(params: Params) -> int:
+    """Total number of scalars in a params pytree."""
+    return int(sum(math.prod(x.shape) for x in jax.tree_util.tree_leaves(params)))
