@@ -1,0 +1,958 @@
+"""Two-phase watermark embedding with deferred back-propagation.
+
+The objective of one training step, for one image of ``H × W`` pixels rendered with one watermark ID, is
+
+    L(θ, φ) = L_img(I(θ), φ) + Σ_p L_patch(R_p(θ), T_p)
+
+where ``I(θ) [H, W, 3]`` is the rendered image, ``φ`` the decoder parameters, ``R_p(θ) [S, S, 3]`` the render
+of square patch ``p`` (``P`` patches of side ``S`` that cover the image), and ``T_p`` the ground truth there.
+The patch losses add up over patches, as WateRF back-propagates each chunk's loss on its own: their weight
+against the image loss grows with the number of patches.
+Phase 1: ``L_img = λ_m·BCE(D(LL2(I)), m) + λ_i·Watson(I, GT)``, no patch term, decoder frozen.
+Phase 2: ``L_img = λ_m·BCE(D(LL2(A(I))), m)`` with two random augmentations ``A``, and
+``L_patch = λ_rgb·L1 + λ_TV·TV + λ_SSIM·(1 − SSIM)``; the decoder trains too.
+
+Deferred back-propagation (ARF) computes ``∇θ L`` without ever holding the graph of the full render:
+
+1. render ``I`` patch by patch without a graph (peak memory: one patch);
+2. ``g_I = ∂L_img/∂I`` and ``∂L_img/∂φ`` from the image-level loss alone (cheap: no renderer inside);
+3. re-render each patch with ``jax.vjp`` and pull back ``g_I`` restricted to the patch plus ``∂L_patch/∂R_p``;
+   the parameter gradients add up over patches.
+
+Because rendering is per ray, step 3 gives exactly the gradient of differentiating ``L`` through the full
+render. Patches are square and all ``S × S`` (static shapes under jit); the last row / column of patches is
+shifted back to end at the image border, so patches may overlap there. Each pixel is *owned* by one patch: its
+image value and its image-loss gradient come from that patch only, while patch losses see whole patches. The
+same per-patch PRNG keys are used in steps 1 and 3, so a jittered render is reproduced exactly.
+
+Each step draws one ID and one training view (deterministically from the seed and the step, so that a resumed
+run follows the same path), renders the view with that ID's FiLM conditioning and takes one optimiser step
+(Adam, per-group learning rates, exponential decay over both phases).
+
+A watermarked run (``WMRUN``) holds ``run.json`` (kind ``multinerf``, the source run, the decoder it started
+from), ``config.json``, ``checkpoints/`` (field, decoder, optimiser, step, PRNG key, geometry), ``keys.json``
+(tied to the fingerprint of ``decoder.npz``, the decoder as fine-tuned with the field) and ``embed.json``
+(progress). ``run.load_run(WMRUN)`` loads it through the loader registered here; :func:`with_id` picks the
+ID to render.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from tqdm.auto import tqdm
+
+from mnerf_jax import augment, dwt, field, grids, losses, render, watermark
+from mnerf_jax import config as config_lib
+from mnerf_jax import decoder as decoder_lib
+from mnerf_jax import keys as keys_lib
+from mnerf_jax import metrics as metrics_lib
+from mnerf_jax import run as runs
+from mnerf_jax.checkpoint import CheckpointStore, check_compatible, config_fingerprint
+from mnerf_jax.config import Config, ModelConfig, TrainConfig, WatermarkConfig
+from mnerf_jax.data import camera_rays
+from mnerf_jax.errors import MnerfError
+
+PyTree = Any
+# render_fn(params, rays_patch, key) -> (rgb [R, 3], stats); rays_patch: a pytree of [R, ...] arrays; stats: a
+# dict of scalars (sample counts) reduced by max over patches.
+RenderFn = Callable[[PyTree, PyTree, jax.Array], tuple[jax.Array, dict[str, jax.Array]]]
+# image_loss_fn(image [H, W, 3], extra) -> (loss, aux); extra: what else is differentiated (decoder params).
+ImageLossFn = Callable[[jax.Array, PyTree], tuple[jax.Array, Any]]
+# patch_loss_fn(rgb [S, S, 3], target [S, S, 3]) -> loss
+PatchLossFn = Callable[[jax.Array, jax.Array], jax.Array]
+
+
+# ------------------------------------------------------------------------------------------ patch layout
+
+
+@dataclasses.dataclass(frozen=True)
+class PatchLayout:
+    """Square patches covering an image.
+
+    ``index [P, S·S]`` int32: flat pixel index (``row·W + col``) of each patch pixel, row-major in the patch;
+    ``owner [P, S·S]`` float32: 1 where this patch owns the pixel (every pixel has exactly one owner).
+    """
+
+    height: int
+    width: int
+    size: int
+    index: np.ndarray
+    owner: np.ndarray
+
+    @property
+    def num_patches(self) -> int:
+        return int(self.index.shape[0])
+
+
+def _starts(n: int, size: int) -> list[int]:
+    starts = list(range(0, n - size + 1, size))
+    if starts[-1] + size < n:
+        starts.append(n - size)  # last patch ends at the border; overlaps the one before
+    return starts
+
+
+def patch_layout(height: int, width: int, patch_size: int) -> PatchLayout:
+    """Cover ``height × width`` with square patches of side ``min(patch_size, height, width)``."""
+    if height < 1 or width < 1 or patch_size < 1:
+        raise ValueError(f"patch_layout needs positive sizes, got {height}x{width}, patch {patch_size}")
+    size = min(int(patch_size), int(height), int(width))
+    rows, cols = np.meshgrid(np.arange(size), np.arange(size), indexing="ij")
+    index, owner = [], []
+    owned = np.zeros(height * width, bool)
+    for r0 in _starts(height, size):
+        for c0 in _starts(width, size):
+            flat = ((r0 + rows) * width + (c0 + cols)).reshape(-1)
+            mine = ~owned[flat]
+            owned[flat] = True
+            index.append(flat)
+            owner.append(mine)
+    assert owned.all()
+    return PatchLayout(
+        height=int(height),
+        width=int(width),
+        size=size,
+        index=np.stack(index).astype(np.int32),
+        owner=np.stack(owner).astype(np.float32),
+    )
+
+
+def gather_rays(rays: PyTree, index: jax.Array) -> PyTree:
+    """Rays of the pixels ``index [...]`` from a pytree of ``[H·W, ...]`` arrays."""
+    return jax.tree.map(lambda r: r[index], rays)
+
+
+def assemble(
+    rgb_patches: jax.Array, index: jax.Array, owner: jax.Array, height: int, width: int
+) -> jax.Array:
+    """``rgb_patches [P, S·S, C]`` → image ``[H, W, C]`` from each pixel's owning patch."""
+    channels = rgb_patches.shape[-1]
+    flat = jnp.zeros((height * width, channels), rgb_patches.dtype)
+    flat = flat.at[index.reshape(-1)].add((rgb_patches * owner[..., None]).reshape(-1, channels))
+    return flat.reshape(height, width, channels)
+
+
+def patch_keys(key: jax.Array, num_patches: int) -> jax.Array:
+    """One PRNG key per patch (shared by the graph-free render and the re-render)."""
+    return jax.random.split(key, num_patches)
+
+
+# ------------------------------------------------------------------------------------------- rendering
+
+
+def render_patches(
+    render_fn: RenderFn, params: PyTree, rays: PyTree, index: jax.Array, keys: jax.Array
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Render every patch, one at a time (``lax.map``): ``([P, S·S, 3], stats [P])``; no graph is kept."""
+
+    def one(args: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, dict[str, jax.Array]]:
+        idx, k = args
+        return render_fn(params, gather_rays(rays, idx), k)
+
+    return jax.lax.map(one, (index, keys))
+
+
+def _max_stats(stats: dict[str, jax.Array]) -> dict[str, jax.Array]:
+    return {k: jnp.max(v) for k, v in stats.items()}
+
+
+def render_image(
+    render_fn: RenderFn,
+    params: PyTree,
+    rays: PyTree,
+    layout_index: jax.Array,
+    layout_owner: jax.Array,
+    key: jax.Array,
+    height: int,
+    width: int,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Graph-free full render ``[H, W, 3]`` through the patch layout (memory of one patch), and the largest
+    per-patch render stats."""
+    keys = patch_keys(key, layout_index.shape[0])
+    rgb, stats = render_patches(render_fn, jax.lax.stop_gradient(params), rays, layout_index, keys)
+    return assemble(rgb, layout_index, layout_owner, height, width), _max_stats(stats)
+
+
+# ------------------------------------------------------------------------------------------ objectives
+
+
+def _patch_term(patch_loss_fn: PatchLossFn | None, rgb: jax.Array, target: jax.Array, size: int) -> jax.Array:
+    if patch_loss_fn is None:
+        return jnp.zeros((), jnp.float32)
+    return patch_loss_fn(rgb.reshape(size, size, -1), target.reshape(size, size, -1))
+
+
+def direct_objective(
+    render_fn: RenderFn,
+    image_loss_fn: ImageLossFn,
+    patch_loss_fn: PatchLossFn | None,
+    params: PyTree,
+    extra: PyTree,
+    rays: PyTree,
+    targets: jax.Array,
+    layout_index: jax.Array,
+    layout_owner: jax.Array,
+    key: jax.Array,
+    height: int,
+    width: int,
+) -> tuple[jax.Array, Any]:
+    """``L(θ, φ)`` computed with every patch render on the graph (reference; memory grows with the image).
+
+    ``targets [H·W, 3]``: ground-truth pixels for the patch loss. Returns ``(loss, aux)``.
+    """
+    n, size2 = layout_index.shape
+    size = int(round(size2**0.5))
+    keys = patch_keys(key, n)
+    rgb, _ = jax.vmap(lambda idx, k: render_fn(params, gather_rays(rays, idx), k))(layout_index, keys)
+    image = assemble(rgb, layout_index, layout_owner, height, width)
+    loss_img, aux = image_loss_fn(image, extra)
+    patch = jax.vmap(lambda r, idx: _patch_term(patch_loss_fn, r, targets[idx], size))(rgb, layout_index)
+    return loss_img + patch.sum(), aux
+
+
+def deferred_grad(
+    render_fn: RenderFn,
+    image_loss_fn: ImageLossFn,
+    patch_loss_fn: PatchLossFn | None,
+    params: PyTree,
+    extra: PyTree,
+    rays: PyTree,
+    targets: jax.Array,
+    layout_index: jax.Array,
+    layout_owner: jax.Array,
+    key: jax.Array,
+    height: int,
+    width: int,
+) -> tuple[jax.Array, Any, jax.Array, PyTree, PyTree]:
+    """``L`` and its gradients by deferred back-propagation; peak memory follows the patch size.
+
+    Args:
+      render_fn: ``(params, rays [R, ...], key) -> (rgb [R, 3], stats)``, per-ray independent.
+      image_loss_fn: ``(image [H, W, 3], extra) -> (loss, aux)``.
+      patch_loss_fn: ``(rgb [S, S, 3], target [S, S, 3]) -> loss`` or None.
+      rays: pytree of ``[H·W, ...]`` arrays; targets: ``[H·W, 3]`` ground truth.
+      layout_index, layout_owner: ``PatchLayout.index`` / ``.owner`` as arrays.
+    Returns:
+      ``(loss, aux, image [H, W, 3], grad_params, grad_extra)``; ``aux`` is the image loss's aux plus
+      ``"render_stats"`` (largest per-patch render stats).
+    """
+    n, size2 = layout_index.shape
+    size = int(round(size2**0.5))
+    keys = patch_keys(key, n)
+    image, stats = render_image(render_fn, params, rays, layout_index, layout_owner, key, height, width)
+    (loss_img, aux), (g_image, g_extra) = jax.value_and_grad(image_loss_fn, argnums=(0, 1), has_aux=True)(
+        image, extra
+    )
+    # The image gradient of a pixel is pushed back once, through its owning patch.
+    cotangents = g_image.reshape(height * width, -1)[layout_index] * layout_owner[..., None]
+
+    Carry = tuple[PyTree, jax.Array]
+
+    def body(carry: Carry, xs: tuple[jax.Array, ...]) -> tuple[Carry, None]:
+        # One patch: re-render with a graph, pull back the cached image gradient plus the patch loss.
+        acc, loss_patches = carry
+        idx, cot, k = xs
+        target = targets[idx]
+        rgb, pullback, _ = jax.vjp(lambda p: render_fn(p, gather_rays(rays, idx), k), params, has_aux=True)
+        loss_p, g_rgb = jax.value_and_grad(lambda r: _patch_term(patch_loss_fn, r, target, size))(rgb)
+        (g_params,) = pullback((cot + g_rgb).astype(rgb.dtype))
+        return (jax.tree.map(jnp.add, acc, g_params), loss_patches + loss_p), None
+
+    zeros = jax.tree.map(jnp.zeros_like, params)
+    (grads, loss_patches), _ = jax.lax.scan(
+        body, (zeros, jnp.zeros((), jnp.float32)), (layout_index, cotangents, keys)
+    )
+    aux = dict(aux) if isinstance(aux, dict) else {"image_aux": aux}
+    aux["render_stats"] = stats
+    aux["loss_image"] = loss_img
+    aux["loss_patch"] = loss_patches
+    return loss_img + loss_patches, aux, image, grads, g_extra
+
+
+# ==========================================================================================================
+# The embedding run: state, optimiser, the jitted step, the loop, checkpoints.
+# ==========================================================================================================
+
+WM_KIND = "multinerf"
+STATE_VERSION = 1
+META_FILE = "embed.json"
+DECODER_FILE = "decoder.npz"
+CONFIG_FILE = "config.json"
+_BUDGET_SITE = "embed_patch"
+
+
+class EmbedError(MnerfError):
+    """Bad input to the embedding (a source that is not a fitted TensoRF, an unusable WMRUN, bad images)."""
+
+
+@flax.struct.dataclass
+class EmbedState:
+    """Everything the jitted embedding step reads and writes.
+
+    Attributes:
+      params: the watermarked field (``watermark.add_watermark`` layout).
+      decoder: decoder variables ``{"params", "batch_stats"}``; only ``params`` train (phase 2), BatchNorm
+        keeps its running statistics (eval mode).
+      opt_state: optax state of :func:`make_optimizer` over ``{"field": params, "decoder": decoder params}``.
+      step: ``[]`` int32, steps completed (phase 1 then phase 2).
+      key: PRNG key of the run; step ``s`` uses ``fold_in(key, s)``.
+    """
+
+    params: PyTree
+    decoder: PyTree
+    opt_state: Any
+    step: jax.Array
+    key: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class StepSpec:
+    """The static part of one embedding step (hashable: one compilation per distinct value)."""
+
+    model: ModelConfig
+    wm: WatermarkConfig
+    adam_b1: float
+    adam_b2: float
+    phase: int
+    height: int
+    width: int
+    density_budget: int
+    colour_budget: int
+
+
+def total_steps(cfg: WatermarkConfig) -> int:
+    return int(cfg.phase1_steps) + int(cfg.phase2_steps)
+
+
+def phase_of(step: int, cfg: WatermarkConfig) -> int:
+    """1 for the first ``phase1_steps`` steps, 2 after."""
+    return 1 if step < cfg.phase1_steps else 2
+
+
+def param_labels(tree: PyTree, cfg: WatermarkConfig) -> PyTree:
+    """Optimiser group of every leaf of ``{"field": params, "decoder": decoder params}``.
+
+    ``grid``: the density, appearance and watermark VM factors (``lr_grid``); ``embedding``: Emb and Mod
+    (``lr_embedding``: each ID's row of Emb only learns on the steps that draw that ID); ``network``: basis,
+    MLP (with its extra rows), the position MLP (``lr_network``); ``decoder`` (``lr_decoder``); ``frozen``:
+    the density grid of the frozen_geometry variant.
+    """
+    density_label = "grid" if watermark.trains_density(cfg) else "frozen"
+
+    def field_label(path: tuple[Any, ...], _: Any) -> str:
+        names = [getattr(p, "key", getattr(p, "name", None)) for p in path]
+        top = names[0] if names else None
+        if top == "wm" and len(names) > 1 and names[1] in ("emb", "mod"):
+            return "embedding"
+        if top == "density":
+            return density_label
+        if top == "appearance" or (top == "wm" and len(names) > 1 and names[1] == "grid"):
+            return "grid"
+        return "network"
+
+    return {
+        "field": jax.tree_util.tree_map_with_path(field_label, tree["field"]),
+        "decoder": jax.tree.map(lambda _: "decoder", tree["decoder"]),
+    }
+
+
+def make_optimizer(
+    cfg: WatermarkConfig, adam_b1: float = 0.9, adam_b2: float = 0.99
+) -> optax.GradientTransformation:
+    """Adam per group with exponential decay ``lr · decay_ratio^(t / total_steps)``."""
+    total = max(total_steps(cfg), 1)
+
+    def group(lr: float) -> optax.GradientTransformation:
+        decay = float(cfg.lr_decay_ratio)
+        return optax.chain(
+            optax.scale_by_adam(b1=adam_b1, b2=adam_b2, eps=1e-8),
+            optax.scale_by_schedule(lambda count: -lr * decay ** (count / total)),
+        )
+
+    transforms = {
+        "grid": group(cfg.lr_grid),
+        "network": group(cfg.lr_network),
+        "decoder": group(cfg.lr_decoder),
+        "embedding": group(cfg.lr_embedding),
+        "frozen": optax.set_to_zero(),
+    }
+    return optax.multi_transform(transforms, functools.partial(param_labels, cfg=cfg))
+
+
+def _render_patch_fn(spec: StepSpec, geometry: render.Geometry, index: jax.Array) -> RenderFn:
+    fns = watermark.field_fns(spec.model, spec.wm)
+
+    def render_fn(params: PyTree, rays: PyTree, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+        # (γ, β) once per call from the ID, not per sample; gradients reach Emb and Mod through them.
+        cond = watermark.condition(params, index, spec.wm)
+        out = render.render_rays(
+            fns, params, cond, rays[0], rays[1], geometry, key,
+            train=spec.wm.jitter, density_budget=spec.density_budget, colour_budget=spec.colour_budget,
+        )  # fmt: skip
+        return out["rgb"], {"density_count": out["density_count"], "colour_count": out["colour_count"]}
+
+    return render_fn
+
+
+def perceptual_loss(kind: str, image: jax.Array, reference: jax.Array, vgg_params: Any = None) -> jax.Array:
+    """Phase 1's perceptual term: Watson-DCT (default) or LPIPS-VGG."""
+    if kind == "watson":
+        return losses.watson_dct_loss(image, reference)
+    if kind == "vgg":
+        return losses.vgg_perceptual_loss(image, reference, vgg_params)
+    raise EmbedError(f"unknown watermark.perceptual {kind!r} (watson | vgg)")
+
+
+def patch_loss(cfg: WatermarkConfig, rgb: jax.Array, target: jax.Array) -> jax.Array:
+    """Phase 2's patch loss ``λ_rgb·L1 + λ_TV·TV + λ_SSIM·(1 − SSIM)`` on ``[S, S, 3]`` patches."""
+    loss = cfg.lambda_rgb * jnp.mean(jnp.abs(rgb - target))
+    if cfg.lambda_tv:
+        loss = loss + cfg.lambda_tv * losses.total_variation(rgb)
+    if cfg.lambda_ssim:
+        loss = loss + cfg.lambda_ssim * losses.ssim_loss(rgb, target)
+    return loss
+
+
+@functools.partial(jax.jit, static_argnames=("spec",))
+def embed_step(
+    state: EmbedState,
+    geometry: render.Geometry,
+    batch: dict[str, jax.Array],
+    layout_index: jax.Array,
+    layout_owner: jax.Array,
+    vgg_params: Any,
+    *,
+    spec: StepSpec,
+) -> tuple[EmbedState, dict[str, jax.Array]]:
+    """One optimisation step on one image rendered with one ID (deferred back-propagation).
+
+    batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [L]`` (0/1 float), ``id []`` int32.
+    Returns the new state and scalar metrics (loss terms, bit accuracy of the un-augmented render, PSNR,
+    largest per-patch sample counts).
+    """
+    cfg = spec.wm
+    h, w = spec.height, spec.width
+    key = jax.random.fold_in(state.key, state.step)
+    k_render, k_aug = jax.random.split(key)
+    message = batch["message"]
+    target_image = batch["target"].reshape(h, w, 3)
+    batch_stats = state.decoder["batch_stats"]
+
+    def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
+        variables = {"params": dec_params, "batch_stats": batch_stats}
+        seen = image[None]
+        if spec.phase == 2 and cfg.augment_per_step > 0:
+            seen = augment.random_policy(k_aug, seen, cfg.augment_strength, k=cfg.augment_per_step,
+                                         p=cfg.augment_prob)  # fmt: skip
+        logits = decoder_lib.apply_ll2(variables, dwt.ll2(seen, cfg.wavelet))[0]
+        bce = losses.bce_with_logits(logits, message, cfg.bce_temperature)
+        loss = cfg.lambda_message * bce
+        perc = jnp.zeros((), jnp.float32)
+        if spec.phase == 1 and cfg.lambda_perceptual:
+            perc = perceptual_loss(cfg.perceptual, image, target_image, vgg_params)
+            loss = loss + cfg.lambda_perceptual * perc
+        return loss, {"bce": bce, "perceptual": perc}
+
+    ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
+    render_fn = _render_patch_fn(spec, geometry, batch["id"])
+    loss, aux, image, g_field, g_dec = deferred_grad(
+        render_fn, image_loss, ploss, state.params, state.decoder["params"],
+        (batch["rays_o"], batch["rays_d"]), batch["target"], layout_index, layout_owner, k_render, h, w,
+    )  # fmt: skip
+    if spec.phase == 1:
+        g_dec = jax.tree.map(jnp.zeros_like, g_dec)  # the decoder is frozen in phase 1
+    grads = {"field": g_field, "decoder": g_dec}
+    values = {"field": state.params, "decoder": state.decoder["params"]}
+    tx = make_optimizer(cfg, spec.adam_b1, spec.adam_b2)
+    updates, opt_state = tx.update(grads, state.opt_state, values)
+    new_values = optax.apply_updates(values, updates)
+    # Bit accuracy of the render as it is (no augmentation), with the decoder before this update.
+    logits = decoder_lib.apply_ll2(state.decoder, dwt.ll2(image[None], cfg.wavelet))[0]
+    metrics = {
+        "loss": loss,
+        "loss_image": aux["loss_image"],
+        "loss_patch": aux["loss_patch"],
+        "bce": aux["bce"],
+        "perceptual": aux["perceptual"],
+        "bit_acc": jnp.mean(((logits > 0).astype(jnp.float32) == message).astype(jnp.float32)),
+        "psnr": metrics_lib.mse_to_psnr(jnp.mean(jnp.square(image - target_image))),
+        "density_count": aux["render_stats"]["density_count"],
+        "colour_count": aux["render_stats"]["colour_count"],
+    }
+    new_state = state.replace(
+        params=new_values["field"],
+        decoder={"params": new_values["decoder"], "batch_stats": batch_stats},
+        opt_state=opt_state,
+        step=state.step + 1,
+    )
+    return new_state, metrics
+
+
+# --------------------------------------------------------------------------------------------- sources
+
+
+def load_source(run_dir: str | Path) -> runs.LoadedRun:
+    """The latest checkpoint of a fitted TensoRF run; EmbedError if ``run_dir`` is not one."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise EmbedError(f"--from {run_dir}: no such run directory")
+    marker = runs.read_marker(run_dir)
+    if marker is None:
+        raise EmbedError(f"--from {run_dir} is not a fitted TensoRF run (no {runs.RUN_MARKER}; make one with "
+                         "`mnerf fit`)")  # fmt: skip
+    if marker.get("kind") != runs.TENSORF_KIND:
+        raise EmbedError(f"--from {run_dir} holds a {marker.get('kind')!r} run, not a fitted TensoRF "
+                         "(watermark the TensoRF run it came from)")  # fmt: skip
+    return runs.load_run(run_dir)
+
+
+def load_decoder_for(bits: int, path: str | Path | None) -> decoder_lib.LoadedDecoder:
+    """``--decoder FILE`` or the shipped decoder for ``bits``; MnerfError on a bit-length mismatch."""
+    if path is None:
+        return decoder_lib.load_decoder(decoder_lib.shipped_decoder_path(bits), expect_bits=bits)
+    loaded = decoder_lib.load_decoder(path)
+    if loaded.bits != bits:
+        raise EmbedError(f"--decoder {path} reads {loaded.bits}-bit messages, not --bits {bits}")
+    return loaded
+
+
+def check_rgb_images(images: np.ndarray, where: str) -> np.ndarray:
+    """``images [N, H, W, 3]`` float32 in [0, 1], or EmbedError naming what is wrong."""
+    arr = np.asarray(images)
+    if arr.ndim != 4 or arr.shape[-1] != 3:
+        raise EmbedError(f"{where}: images must be RGB [N, H, W, 3], got shape {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise EmbedError(f"{where}: images must be float in [0, 1], got {arr.dtype}")
+    return arr.astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------- the run on disk
+
+
+def _fingerprint_config(config: Config) -> Config:
+    """The config with everything that does not change the embedding's trajectory normalised away."""
+    wm = dataclasses.replace(config.watermark, checkpoint_every=0, keep_checkpoints=0, id_threshold=0.0)
+    return dataclasses.replace(config, train=TrainConfig(), watermark=wm,
+                               render=dataclasses.replace(config.render, chunk=0))  # fmt: skip
+
+
+_SECTIONS = ("data", "model", "render", "watermark")
+_GEOMETRY_KEYS = ("aabb", "alpha_mask", "mask_aabb", "step_size", "near", "far", "distance_scale")
+
+
+def _geometry_tree(g: render.Geometry) -> dict[str, jax.Array]:
+    return {k: getattr(g, k) for k in _GEOMETRY_KEYS}
+
+
+def _geometry_from(tree: dict[str, Any], meta: dict[str, Any]) -> render.Geometry:
+    mask = np.asarray(tree["alpha_mask"], bool)
+    f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
+    return render.Geometry(
+        aabb=f32(tree["aabb"]), alpha_mask=jnp.asarray(mask),
+        alpha_cells=jnp.asarray(render.mask_cells(mask)), mask_aabb=f32(tree["mask_aabb"]),
+        step_size=f32(tree["step_size"]), near=f32(tree["near"]), far=f32(tree["far"]),
+        distance_scale=f32(tree["distance_scale"]), n_samples=int(meta["n_samples"]), ndc=bool(meta["ndc"]),
+        white_bg=bool(meta["white_bg"]),
+    )  # fmt: skip
+
+
+def _state_target(config: Config, meta: dict[str, Any], optimizer: bool = True) -> dict[str, Any]:
+    """Pytree structure of an embedding checkpoint (the shapes come from the checkpoint); without the
+    optimiser state when ``optimizer`` is False (loading for rendering)."""
+    cfg = config.watermark
+    resolution = tuple(meta["resolution"])
+
+    def init() -> tuple[PyTree, PyTree]:
+        base = field.init_field(jax.random.key(0), config.model, resolution)
+        params = watermark.add_watermark(jax.random.key(1), base, cfg, int(meta["num_ids"]))
+        return params, decoder_lib.init_decoder(jax.random.key(2), int(meta["bits"]))
+
+    params, dec = jax.eval_shape(init)
+    scalar = jax.ShapeDtypeStruct((), jnp.float32)
+    target = {
+        "params": params,
+        "decoder": dec,
+        "step": jax.ShapeDtypeStruct((), jnp.int32),
+        "key": jax.ShapeDtypeStruct((2,), jnp.uint32),
+        "geometry": dict.fromkeys(_GEOMETRY_KEYS, scalar),
+    }
+    if optimizer:
+        values = {"field": params, "decoder": dec["params"]}
+        target["opt_state"] = jax.eval_shape(make_optimizer(cfg).init, values)
+    return target
+
+
+def _checkpoint_tree(state: EmbedState, geometry: render.Geometry) -> dict[str, Any]:
+    return {
+        "params": state.params,
+        "decoder": state.decoder,
+        "opt_state": state.opt_state,
+        "step": state.step,
+        "key": jax.random.key_data(state.key),
+        "geometry": _geometry_tree(geometry),
+    }
+
+
+def _checkpoint_meta(config: Config, state: EmbedState, geometry: render.Geometry, keys: keys_lib.KeySet,
+                     budgets: tuple[int, int]) -> dict[str, Any]:  # fmt: skip
+    step = int(state.step)
+    return {
+        "kind": WM_KIND,
+        "version": STATE_VERSION,
+        "step": step,
+        "phase": phase_of(max(step - 1, 0), config.watermark),
+        "fingerprint": config_fingerprint(_fingerprint_config(config), _SECTIONS),
+        "config": config.to_dict(),
+        "resolution": list(grids.vm_resolution(state.params["density"])),
+        "geometry": {"n_samples": geometry.n_samples, "ndc": geometry.ndc, "white_bg": geometry.white_bg},
+        "num_ids": keys.num_ids,
+        "bits": keys.bits,
+        "budgets": [int(b) for b in budgets],
+    }
+
+
+def _restore(store: CheckpointStore, run_dir: Path, step: int | None = None,
+             optimizer: bool = True) -> tuple[Config, dict, dict]:  # fmt: skip
+    """``(config, checkpoint tree, meta)`` of an embedding checkpoint."""
+    meta = store.read_meta(step)
+    if meta.get("kind") != WM_KIND:
+        raise EmbedError(f"{run_dir}: its checkpoint holds a {meta.get('kind')!r} model, not a watermark")
+    config = config_lib.from_dict(meta["config"])
+    tree, meta = store.restore(_state_target(config, meta, optimizer), int(meta["step"]))
+    return config, tree, meta
+
+
+def _load_multinerf(
+    run_dir: Path, marker: dict[str, Any], config: Config, step: int | None
+) -> runs.LoadedRun:
+    """``run.load_run`` loader of watermarked runs: ``cond`` renders ID 0; ``extras`` hold the keys, the
+    decoder, the source run and the number of IDs (see :func:`with_id`)."""
+    if not (run_dir / DECODER_FILE).is_file():
+        raise EmbedError(f"{run_dir} has no {DECODER_FILE} (the embedding has not written a checkpoint yet)")
+    dec = decoder_lib.load_decoder(run_dir / DECODER_FILE)
+    keys = keys_lib.load_keys(run_dir, decoder_fingerprint=dec.fingerprint, expect_bits=dec.bits)
+    store = CheckpointStore(run_dir, create=False)
+    try:
+        if store.latest_step() is None:
+            raise EmbedError(f"{run_dir} holds no checkpoint yet")
+        config, tree, meta = _restore(store, run_dir, step, optimizer=False)
+    finally:
+        store.close()
+    if int(meta["num_ids"]) != keys.num_ids or int(meta["bits"]) != keys.bits:
+        raise EmbedError(f"{run_dir}: keys.json ({keys.num_ids} IDs × {keys.bits} bits) does not match the "
+                         f"checkpoint ({meta['num_ids']} × {meta['bits']})")  # fmt: skip
+    params = jax.tree.map(jnp.asarray, tree["params"])
+    loaded = runs.LoadedRun(
+        run_dir=run_dir, kind=WM_KIND, config=config, marker=marker, params=params,
+        geometry=_geometry_from(tree["geometry"], meta["geometry"]),
+        field_fns=watermark.field_fns(config.model, config.watermark), cond=None, step=int(meta["step"]),
+        meta=meta,
+        extras={"keys": keys, "decoder": dec, "num_ids": keys.num_ids, "id": None,
+                "source_run": marker.get("source_run")},
+    )  # fmt: skip
+    return with_id(loaded, 0)
+
+
+runs.register_run_kind(WM_KIND, _load_multinerf)
+
+
+def is_watermarked(run: runs.LoadedRun) -> bool:
+    return run.kind == WM_KIND
+
+
+def with_id(run: runs.LoadedRun, index: Any) -> runs.LoadedRun:
+    """The loaded watermarked run set to render ID ``index`` (``mnerf render --id K``).
+
+    KeysError for an ID outside ``[0, N)``; EmbedError for a run without watermarks.
+    """
+    if not is_watermarked(run):
+        raise EmbedError(f"{run.run_dir} is not a watermarked run: it has no IDs to choose from")
+    index = keys_lib.check_id(index, int(run.extras["num_ids"]))
+    cond = watermark.condition(run.params, index, run.config.watermark)
+    return dataclasses.replace(run, cond=cond, extras={**run.extras, "id": index})
+
+
+def load_watermarked_run(run_dir: str | Path, step: int | None = None) -> runs.LoadedRun:
+    """``run.load_run`` for a directory that must hold a watermarked run."""
+    run_dir = Path(run_dir)
+    marker = runs.read_marker(run_dir) if run_dir.is_dir() else None
+    if marker is not None and marker.get("kind") == WM_KIND:
+        return runs.load_run(run_dir, step)
+    if marker is not None:
+        raise EmbedError(f"{run_dir} holds a {marker.get('kind')!r} run without watermarks "
+                         f"(make one with `mnerf embed --from {run_dir} --out WMRUN`)")  # fmt: skip
+    if (run_dir / keys_lib.KEYS_FILE).is_file():
+        raise EmbedError(f"{run_dir} has keys but no {runs.RUN_MARKER}: not a complete watermarked run")
+    raise EmbedError(f"{run_dir} is not a watermarked run (make one with `mnerf embed`)")
+
+
+def render_with_id(run: runs.LoadedRun, index: int, cameras: Any, indices: Sequence[int] | None = None,
+                   **kwargs: Any) -> list[np.ndarray]:  # fmt: skip
+    """Evaluation renders ``[H, W, 3]`` of ``cameras`` (``data.Cameras``) for ID ``index``."""
+    return runs.render_views(with_id(run, index), cameras, indices, **kwargs)
+
+
+# ------------------------------------------------------------------------------------------- the loop
+
+
+@dataclasses.dataclass
+class EmbedResult:
+    """What :func:`embed` returns."""
+
+    run_dir: Path
+    keys: keys_lib.KeySet
+    steps: int
+    seconds: float
+    last_metrics: dict[str, float]
+    redone_steps: int
+
+
+def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequence[str], num_ids: int,
+                   bits: int) -> Config:  # fmt: skip
+    """The embedding config: the source run's data/model/render, the watermark section from ``preset``
+    (default: the source's), then ``--set`` overrides, then ``num_ids`` and ``bits``."""
+    base = source.config
+    if preset is not None:
+        base = dataclasses.replace(base, watermark=config_lib.load_preset(preset).watermark)
+    config = config_lib.apply_overrides(base, overrides)
+    if config.model != source.config.model or config.data != source.config.data:
+        raise EmbedError("--set may not change model.* or data.* of a fitted run (the embedding keeps its "
+                         "arrays and scene)")  # fmt: skip
+    config = dataclasses.replace(
+        config, watermark=dataclasses.replace(config.watermark, num_ids=int(num_ids), bits=int(bits))
+    )
+    watermark.check_config(config.watermark)
+    keys_lib.check_sizes(int(num_ids), int(bits))
+    cfg = config.watermark
+    if cfg.perceptual not in ("watson", "vgg"):
+        raise EmbedError(f"unknown watermark.perceptual {cfg.perceptual!r} (watson | vgg)")
+    if cfg.augment_strength not in augment.STRENGTHS:
+        raise EmbedError(f"unknown watermark.augment_strength {cfg.augment_strength!r} "
+                         f"({' | '.join(augment.STRENGTHS)})")  # fmt: skip
+    if cfg.wavelet not in dwt.DEC_LO:
+        raise EmbedError(f"unknown watermark.wavelet {cfg.wavelet!r} ({' | '.join(dwt.DEC_LO)})")
+    if total_steps(config.watermark) < 1:
+        raise EmbedError("watermark.phase1_steps + watermark.phase2_steps must be ≥ 1")
+    return config
+
+
+def _batch(split: Any, view: int, message: np.ndarray, index: int) -> dict[str, jax.Array]:
+    o, d = camera_rays(split.cameras, view)
+    return {
+        "rays_o": jnp.asarray(o),
+        "rays_d": jnp.asarray(d),
+        "target": jnp.asarray(split.images[view].reshape(-1, 3), jnp.float32),
+        "message": jnp.asarray(message, jnp.float32),
+        "id": jnp.asarray(index, jnp.int32),
+    }
+
+
+def step_choice(seed: int, step: int, num_ids: int, num_views: int) -> tuple[int, int]:
+    """``(ID, training view)`` of step ``step``: uniform, deterministic in ``(seed, step)`` (so resumable)."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x1D, int(step)]))
+    return int(rng.integers(num_ids)), int(rng.integers(num_views))
+
+
+def _has_checkpoints(out: Path) -> bool:
+    folder = out / "checkpoints"
+    return folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())
+
+
+def embed(
+    source_run: str | Path,
+    out_dir: str | Path,
+    num_ids: int,
+    bits: int,
+    *,
+    preset: str | None = None,
+    overrides: Sequence[str] = (),
+    decoder_path: str | Path | None = None,
+    data_path: str | Path | None = None,
+    resume: bool = False,
+    stop_at: int | None = None,
+    progress: bool = True,
+    on_step: Callable[[int, dict[str, float]], None] | None = None,
+) -> EmbedResult:
+    """Embed ``num_ids`` keyed ``bits``-bit watermarks into the TensoRF of ``source_run``; write ``out_dir``.
+
+    Everything that can be checked is checked before anything is written (source run, config, decoder,
+    scene images, output directory).
+
+    Args:
+      source_run: a fitted TensoRF run (``mnerf fit``).
+      out_dir: the watermarked run: ``run.json``, ``config.json``, ``checkpoints/``, ``keys.json``,
+        ``decoder.npz`` (the decoder as fine-tuned with the field), ``embed.json`` (progress).
+      num_ids, bits: ``N`` IDs with ``L``-bit messages (the decoder must read ``L`` bits).
+      preset, overrides: the watermark config (``--config``, ``--set``).
+      decoder_path: the decoder to start from (default: the shipped one for ``bits``).
+      data_path: the scene (default: the one the source run recorded).
+      resume: continue from ``out_dir``'s latest checkpoint (a fresh start when there is none).
+      stop_at: stop after this many steps in all (a checkpoint is written there).
+      on_step: called after every step with ``(step, metrics)``.
+    """
+    out = Path(out_dir)
+    source = load_source(source_run)
+    config = resolve_config(source, preset, overrides, num_ids, bits)
+    cfg = config.watermark
+    loaded = load_decoder_for(bits, decoder_path)
+    resuming = runs.prepare_output(out, config, resume=resume, kind=WM_KIND) and _has_checkpoints(out)
+    keys = None
+    if resuming:
+        keys = keys_lib.load_keys(out, expect_bits=bits)  # a WMRUN without keys stops here
+        if keys.num_ids != num_ids:
+            raise EmbedError(f"{out} embeds {keys.num_ids} IDs, not --num-ids {num_ids}")
+    scene = source.load_scene(data_path, splits=("train",))
+    split = scene.split("train")
+    check_rgb_images(split.images, f"{data_path or source.data_path or 'procedural scene'} (train split)")
+    height, width = int(split.images.shape[1]), int(split.images.shape[2])
+    layout = patch_layout(height, width, cfg.patch_size)
+    if cfg.lambda_ssim and layout.size < 11:
+        raise EmbedError(f"patches of {layout.size} px (images {height}×{width}, watermark.patch_size "
+                         f"{cfg.patch_size}) are below SSIM's 11×11 window")  # fmt: skip
+
+    store = CheckpointStore(out, keep=max(cfg.keep_checkpoints, 1))
+    policy = render.BudgetPolicy()
+    n_rays, n_samples = layout.size * layout.size, source.geometry.n_samples
+    try:
+        if resuming:
+            meta = store.read_meta()
+            if meta.get("kind") != WM_KIND:
+                raise EmbedError(f"{out}: its checkpoint holds a {meta.get('kind')!r} model, not a watermark")
+            check_compatible(meta, _fingerprint_config(config), out, _SECTIONS)
+            _, tree, meta = _restore(store, out)
+            state = EmbedState(
+                params=jax.tree.map(jnp.asarray, tree["params"]),
+                decoder=jax.tree.map(jnp.asarray, tree["decoder"]),
+                opt_state=jax.tree.map(jnp.asarray, tree["opt_state"]),
+                step=jnp.asarray(tree["step"], jnp.int32),
+                key=jax.random.wrap_key_data(jnp.asarray(tree["key"], jnp.uint32)),
+            )
+            geometry = _geometry_from(tree["geometry"], meta["geometry"])
+            _seed_budgets(policy, n_rays, n_samples, meta["budgets"])
+        else:
+            keys = keys_lib.generate_keys(num_ids, bits, cfg.min_hamming, cfg.key_seed, loaded.fingerprint)
+            root = jax.random.key(cfg.seed)
+            params = watermark.add_watermark(jax.random.fold_in(root, 0x3A7), source.params, cfg, num_ids)
+            dec_vars = {"params": loaded.variables["params"], "batch_stats": loaded.variables["batch_stats"]}
+            tx = make_optimizer(cfg, config.train.adam_b1, config.train.adam_b2)
+            state = EmbedState(
+                params=params, decoder=dec_vars,
+                opt_state=tx.init({"field": params, "decoder": dec_vars["params"]}),
+                step=jnp.zeros((), jnp.int32), key=jax.random.fold_in(root, 0xE3B),
+            )  # fmt: skip
+            geometry = source.geometry
+            data = data_path if data_path is not None else source.data_path
+            runs.write_run_files(out, config, data=data, kind=WM_KIND, extra={
+                "source_run": str(source.run_dir.resolve()), "source_step": source.step, "num_ids": num_ids,
+                "bits": bits, "variant": cfg.variant, "decoder_source": str(Path(loaded.path).resolve()),
+                "decoder_source_fingerprint": loaded.fingerprint,
+            })  # fmt: skip
+            keys_lib.save_keys(out, keys)
+        vgg = losses.vgg_params() if cfg.perceptual == "vgg" and cfg.lambda_perceptual else None
+        loop = _Loop(config, split, keys, layout, geometry, policy, store, out, progress, on_step, vgg)
+        return loop.run(state, stop_at)
+    finally:
+        store.close()
+
+
+def _seed_budgets(policy: render.BudgetPolicy, n_rays: int, n_samples: int, budgets: Sequence[int]) -> None:
+    """Start ``policy`` at the budgets a checkpoint recorded (no overflow-and-redo after a resume)."""
+    policy.budgets(_BUDGET_SITE, n_rays, n_samples)
+    site = policy._sites[(_BUDGET_SITE, n_rays * n_samples)]  # noqa: SLF001
+    site.density, site.colour = int(budgets[0]), int(budgets[1])
+
+
+@dataclasses.dataclass
+class _Loop:
+    """Host side of the embedding: choose ID and view, dispatch steps, grow budgets, checkpoint, report."""
+
+    config: Config
+    split: Any
+    keys: keys_lib.KeySet
+    layout: PatchLayout
+    geometry: render.Geometry
+    policy: render.BudgetPolicy
+    store: CheckpointStore
+    out: Path
+    progress: bool
+    on_step: Callable[[int, dict[str, float]], None] | None
+    vgg: Any
+
+    def budgets(self) -> tuple[int, int]:
+        return self.policy.budgets(_BUDGET_SITE, self.layout.size**2, self.geometry.n_samples)
+
+    def save(self, state: EmbedState) -> None:
+        """Checkpoint, then the decoder as it is now, then keys.json tied to that decoder, then progress."""
+        step = int(state.step)
+        meta = _checkpoint_meta(self.config, state, self.geometry, self.keys, self.budgets())
+        self.store.save(step, _checkpoint_tree(state, self.geometry), meta)
+        self.store.wait()
+        dec_meta = decoder_lib.save_decoder(self.out / DECODER_FILE, state.decoder, {"embed_step": step},
+                                            wavelet=self.config.watermark.wavelet)  # fmt: skip
+        self.keys = keys_lib.with_fingerprint(self.keys, dec_meta["fingerprint"])
+        keys_lib.save_keys(self.out, self.keys)
+        runs.write_json_atomic(self.out / META_FILE, {"steps_done": step, "phase": meta["phase"],
+                                                      "decoder_fingerprint": dec_meta["fingerprint"]})
+
+    def run(self, state: EmbedState, stop_at: int | None) -> EmbedResult:
+        cfg = self.config.watermark
+        total = total_steps(cfg)
+        stop = total if stop_at is None else min(int(stop_at), total)
+        n_rays, n_samples = self.layout.size**2, self.geometry.n_samples
+        index_arr, owner_arr = jnp.asarray(self.layout.index), jnp.asarray(self.layout.owner)
+        messages = self.keys.messages.astype(np.float32)
+        start = step = int(state.step)
+        every = max(int(cfg.checkpoint_every), 1)
+        bar = tqdm(total=stop, initial=start, disable=not self.progress, desc="embed", unit="step",
+                   dynamic_ncols=True)  # fmt: skip
+        recent: list[tuple[float, float]] = []
+        last: dict[str, float] = {}
+        redone = 0
+        t0 = time.perf_counter()
+        try:
+            while step < stop:
+                phase = phase_of(step, cfg)
+                index, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images))
+                batch = _batch(self.split, view, messages[index], index)
+                db, cb = self.budgets()
+                spec = StepSpec(model=self.config.model, wm=cfg, adam_b1=self.config.train.adam_b1,
+                                adam_b2=self.config.train.adam_b2, phase=phase, height=self.layout.height,
+                                width=self.layout.width, density_budget=db, colour_budget=cb)  # fmt: skip
+                new_state, metrics = embed_step(state, self.geometry, batch, index_arr, owner_arr, self.vgg,
+                                                spec=spec)  # fmt: skip
+                host = {k: float(v) for k, v in jax.device_get(metrics).items()}
+                counts = {k: int(host[k]) for k in ("density_count", "colour_count")}
+                if self.policy.update(_BUDGET_SITE, counts, n_rays, n_samples):
+                    redone += 1  # samples were dropped: redo the step with the grown budgets
+                    continue
+                if not all(np.isfinite(v) for v in host.values()):
+                    raise EmbedError(f"step {step}: the loss is not finite ({host['loss']}); lower the "
+                                     "learning rates (watermark.lr_*)")  # fmt: skip
+                state, step = new_state, step + 1
+                host.update(phase=float(phase), id=float(index), view=float(view))
+                last = host
+                recent = [*recent, (host["bit_acc"], host["psnr"])][-20:]
+                bar.update(1)
+                bar.set_postfix(phase=phase, bit_acc=f"{np.mean([r[0] for r in recent]):.3f}",
+                                psnr=f"{np.mean([r[1] for r in recent]):.2f}")  # fmt: skip
+                if self.on_step is not None:
+                    self.on_step(step - 1, host)
+                if step % every == 0 or step == stop or step == cfg.phase1_steps:
+                    self.save(state)
+        finally:
+            bar.close()
+        if not (self.out / DECODER_FILE).is_file():
+            self.save(state)
+        return EmbedResult(run_dir=self.out, keys=self.keys, steps=int(state.step),
+                           seconds=time.perf_counter() - t0, last_metrics=last,
+                           redone_steps=redone)  # fmt: skip

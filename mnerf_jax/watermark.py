@@ -1,0 +1,326 @@
+"""The MultiNeRF watermark module: a watermark VM grid, the ID embedding ``Emb``, the FiLM modulator ``Mod``.
+
+For watermark ID ``n`` (an integer in ``[0, N)``)::
+
+    e_n = Emb(onehot(n))                        Linear(N, H) → ReLU → Linear(H, 16)
+    [γ_n, β_n] = Mod(e_n)                       one Linear(16, 2C)
+    w(x)  = ⊕_m [plane_m · line_m](x)           the watermark VM grid, C = ΣWMCom channels (24 by default)
+    w'(x) = γ_n ⊙ w(x) + β_n
+    c̃(x)  = MLP_Fea(G_c(x), d; last layer += w'(x) · out_extra)
+
+``Emb`` and ``Mod`` start at torch's default init, so every ID starts with its own, unrelated ``(γ_n, β_n)``
+(magnitudes ~0.3). A FiLM around the identity (``γ = 1 + Δγ``, ``Δγ`` small) was measured to leave the IDs
+nearly alike for the whole of a short embedding: the shared part of ``w'`` then learns one message for all
+IDs. ``out_extra`` starts at small noise (1e-3), so the untrained watermarked model renders what the
+TensoRF it came from renders (to within one 8-bit level).
+
+``(γ_n, β_n)`` depend on the ID only, so they are computed once per image (:func:`condition`) and passed to
+the renderer as ``cond``; the colour function reads them per sample.
+
+Params pytree (a fitted TensoRF's params plus)::
+
+    params["wm"] = {"grid": VMGrid,                            # grid variants
+                    "pos_mlp": {"w0", "b0", "w1", "b1"},        # no_grid: position MLP instead of the grid
+                    "emb": {"w0": [N, H], "b0", "w1": [H, E], "b1"},
+                    "mod": {"w": [E, 2C], "b": [2C]}}           # FiLM variants
+    params["mlp"]["out_extra"]: [X, 3]  or  params["mlp"]["in_extra"]: [X, W]
+
+Variants (``WatermarkConfig.variant``), the configurations the paper compares:
+
+============== =========================================================================================
+multinerf      grid + Emb + FiLM into the last MLP layer (the method)
+no_grid        -GRID(+MLP): a small MLP on the encoded position replaces the grid; FiLM, last layer
+no_film        -FiLM: ``[w(x), e_n]`` concatenated (no modulation) into the last layer
+frozen_geometry as multinerf, but the density grid is not trained
+early          +EARLY: ``w'(x)`` enters the first MLP layer (``in_extra``)
+waterf         WateRF: one message, no ID, no watermark module; the TensoRF itself is fine-tuned
+waterf_mod     WateRF-modified: WateRF plus ``e_n`` fed to the first MLP layer
+============== =========================================================================================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from mnerf_jax import field, grids
+from mnerf_jax.config import ModelConfig, WatermarkConfig
+from mnerf_jax.errors import MnerfError
+from mnerf_jax.render import FieldFns
+
+Array = jax.Array
+Params = dict
+
+VARIANTS = ("multinerf", "no_grid", "no_film", "frozen_geometry", "early", "waterf", "waterf_mod")
+_GRID_VARIANTS = ("multinerf", "no_film", "frozen_geometry", "early")
+_FILM_VARIANTS = ("multinerf", "no_grid", "frozen_geometry", "early")
+# Frequencies of the position encoding that feeds the no_grid variant's MLP.
+POS_FREQS = 6
+POS_HIDDEN = 64
+
+
+class WatermarkError(MnerfError):
+    """A watermark configuration that cannot be built."""
+
+
+# --------------------------------------------------------------------------------------------- variants
+
+
+def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
+    """Raise WatermarkError for an unknown variant, bad ranks, or an ID count the variant cannot use."""
+    if cfg.variant not in VARIANTS:
+        raise WatermarkError(f"unknown watermark variant {cfg.variant!r} (known: {', '.join(VARIANTS)})")
+    if min(cfg.wm_ranks) < 0 or sum(cfg.wm_ranks) < 1:
+        raise WatermarkError(f"watermark.wm_ranks must be ≥ 0 with a positive sum, got {cfg.wm_ranks}")
+    if cfg.emb_dim < 1 or cfg.emb_hidden < 1:
+        raise WatermarkError("watermark.emb_dim and watermark.emb_hidden must be ≥ 1")
+    n = cfg.num_ids if num_ids is None else num_ids
+    if n < 1:
+        raise WatermarkError(f"the number of IDs must be ≥ 1, got {n}")
+    if cfg.variant == "waterf" and n != 1:
+        raise WatermarkError(f"variant waterf embeds one message without an ID: use --num-ids 1 (got {n})")
+
+
+def uses_ids(cfg: WatermarkConfig) -> bool:
+    """True when renders depend on the chosen ID (every variant but waterf)."""
+    return cfg.variant != "waterf"
+
+
+def uses_grid(cfg: WatermarkConfig) -> bool:
+    return cfg.variant in _GRID_VARIANTS
+
+
+def uses_film(cfg: WatermarkConfig) -> bool:
+    return cfg.variant in _FILM_VARIANTS
+
+
+def injection(cfg: WatermarkConfig) -> str | None:
+    """Which MLP layer receives the extra features: ``"last"``, ``"first"`` or None (waterf)."""
+    if cfg.variant == "waterf":
+        return None
+    if cfg.variant in ("early", "waterf_mod"):
+        return "first"
+    return "last"
+
+
+def wm_channels(cfg: WatermarkConfig) -> int:
+    """``C``: watermark feature channels (``Σ wm_ranks``, 24 by default)."""
+    return int(sum(cfg.wm_ranks))
+
+
+def extra_width(cfg: WatermarkConfig) -> int:
+    """Width ``X`` of the features the colour MLP receives (rows of ``out_extra`` / ``in_extra``)."""
+    if cfg.variant == "waterf":
+        return 0
+    if cfg.variant == "waterf_mod":
+        return cfg.emb_dim
+    if cfg.variant == "no_film":
+        return wm_channels(cfg) + cfg.emb_dim
+    return wm_channels(cfg)
+
+
+def trains_density(cfg: WatermarkConfig) -> bool:
+    """False for frozen_geometry: the density grid keeps the fitted values."""
+    return cfg.variant != "frozen_geometry"
+
+
+# ------------------------------------------------------------------------------------------------- init
+
+
+def _linear(key: Array, fan_in: int, fan_out: int, scale: float = 1.0) -> tuple[Array, Array]:
+    """torch.nn.Linear's default init ``U(±1/√fan_in)`` times ``scale``: ``(w [in, out], b [out])``."""
+    bound = scale / math.sqrt(fan_in)
+    kw, kb = jax.random.split(key)
+    w = jax.random.uniform(kw, (fan_in, fan_out), jnp.float32, -bound, bound)
+    b = jax.random.uniform(kb, (fan_out,), jnp.float32, -bound, bound)
+    return w, b
+
+
+def init_watermark(
+    key: Array,
+    cfg: WatermarkConfig,
+    num_ids: int,
+    resolution: tuple[int, int, int],
+    grid_scale: float = 0.1,
+    mod_scale: float = 1.0,
+) -> Params:
+    """Fresh watermark params ``params["wm"]`` (see the module docstring; ``{}`` for waterf).
+
+    Args:
+      key: PRNG key.
+      cfg: watermark config (variant, ranks, embedding sizes).
+      num_ids: ``N``, the one-hot width of ``Emb``.
+      resolution: grid nodes ``(X, Y, Z)``, the same as the field's density and appearance grids.
+      grid_scale: std of the watermark grid factors (TensoRF's 0.1).
+      mod_scale: ``Mod`` starts at this times torch's default init ``U(±1/√emb_dim)``.
+    """
+    check_config(cfg, num_ids)
+    k_grid, k_pos0, k_pos1, k_emb0, k_emb1, k_mod = jax.random.split(key, 6)
+    wm: Params = {}
+    c = wm_channels(cfg)
+    if uses_grid(cfg):
+        wm["grid"] = grids.init_vm(k_grid, resolution, cfg.wm_ranks, grid_scale)
+    if cfg.variant == "no_grid":
+        w0, b0 = _linear(k_pos0, 3 + 6 * POS_FREQS, POS_HIDDEN)
+        w1, b1 = _linear(k_pos1, POS_HIDDEN, c)
+        wm["pos_mlp"] = {"w0": w0, "b0": b0, "w1": w1, "b1": b1}
+    if uses_ids(cfg):
+        w0, b0 = _linear(k_emb0, num_ids, cfg.emb_hidden)
+        w1, b1 = _linear(k_emb1, cfg.emb_hidden, cfg.emb_dim)
+        wm["emb"] = {"w0": w0, "b0": b0, "w1": w1, "b1": b1}
+    if uses_film(cfg):
+        w, b = _linear(k_mod, cfg.emb_dim, 2 * c, mod_scale)
+        wm["mod"] = {"w": w, "b": b}
+    return wm
+
+
+def add_watermark(
+    key: Array,
+    field_params: Params,
+    cfg: WatermarkConfig,
+    num_ids: int,
+    extra_scale: float = 1e-3,
+) -> Params:
+    """A fitted TensoRF's params with the watermark module added (new dicts; the input is not changed).
+
+    The watermark grid takes the density grid's resolution; ``out_extra`` / ``in_extra`` start at
+    ``extra_scale · N(0, 1)``.
+    """
+    k_wm, k_extra = jax.random.split(key)
+    resolution = grids.vm_resolution(field_params["density"])
+    params = dict(field_params)
+    mlp = {k: v for k, v in field_params["mlp"].items() if k not in ("out_extra", "in_extra")}
+    width = extra_width(cfg)
+    where = injection(cfg)
+    if where == "last":
+        mlp["out_extra"] = extra_scale * jax.random.normal(k_extra, (width, 3), jnp.float32)
+    elif where == "first":
+        hidden = int(field_params["mlp"]["w0"].shape[1])
+        mlp["in_extra"] = extra_scale * jax.random.normal(k_extra, (width, hidden), jnp.float32)
+    params["mlp"] = mlp
+    params["wm"] = init_watermark(k_wm, cfg, num_ids, resolution)
+    return params
+
+
+def resample_watermark(params: Params, resolution: tuple[int, int, int]) -> Params:
+    """Resize the watermark grid to ``resolution`` (with the field's upsampling; no-op without a grid)."""
+    if "grid" not in params.get("wm", {}):
+        return params
+    wm = dict(params["wm"], grid=grids.upsample_vm(params["wm"]["grid"], resolution))
+    return dict(params, wm=wm)
+
+
+def shrink_watermark(params: Params, lo: tuple[int, ...], hi: tuple[int, ...]) -> Params:
+    """Crop the watermark grid to nodes ``lo ≤ i < hi`` (with the field's aabb shrink)."""
+    if "grid" not in params.get("wm", {}):
+        return params
+    wm = dict(params["wm"], grid=grids.shrink_vm(params["wm"]["grid"], lo, hi))
+    return dict(params, wm=wm)
+
+
+# ---------------------------------------------------------------------------------------------- forward
+
+
+def embed_id(wm: Params, index: Array | int, num_ids: int) -> Array:
+    """``e_n = Emb(onehot(n))``: ``[emb_dim]``. ``index`` may be traced (one compilation for all IDs)."""
+    onehot = jax.nn.one_hot(jnp.asarray(index, jnp.int32), num_ids, dtype=jnp.float32)
+    h = jax.nn.relu(onehot @ wm["emb"]["w0"] + wm["emb"]["b0"])
+    return h @ wm["emb"]["w1"] + wm["emb"]["b1"]
+
+
+def film(wm: Params, e: Array) -> tuple[Array, Array]:
+    """``(γ [C], β [C]) = Mod(e)``."""
+    out = e @ wm["mod"]["w"] + wm["mod"]["b"]
+    gamma, beta = jnp.split(out, 2, axis=-1)
+    return gamma, beta
+
+
+def condition(params: Params, index: Array | int, cfg: WatermarkConfig) -> Any:
+    """The renderer's ``cond`` for ID ``index``, computed once per image.
+
+    FiLM variants: ``{"gamma": [C], "beta": [C]}``; no_film and waterf_mod: ``{"emb": [E]}``; waterf: None.
+    """
+    if not uses_ids(cfg):
+        return None
+    wm = params["wm"]
+    num_ids = int(wm["emb"]["w0"].shape[0])
+    e = embed_id(wm, index, num_ids)
+    if uses_film(cfg):
+        gamma, beta = film(wm, e)
+        return {"gamma": gamma, "beta": beta}
+    return {"emb": e}
+
+
+def position_features(pos_mlp: Params, xyz: Array) -> Array:
+    """no_grid's ``w(x)``: ``[P, C]`` from an MLP on ``[x, PE(x, 6)]`` (``x`` normalised, π-scaled PE)."""
+    enc = jnp.concatenate([xyz, field.positional_encoding(xyz * jnp.pi, POS_FREQS)], axis=-1)
+    h = jax.nn.relu(enc @ pos_mlp["w0"] + pos_mlp["b0"])
+    return h @ pos_mlp["w1"] + pos_mlp["b1"]
+
+
+def raw_features(params: Params, xyz: Array, cfg: WatermarkConfig) -> Array:
+    """``w(x) [P, C]`` at normalised points ``xyz [P, 3]`` (grid or position MLP)."""
+    if uses_grid(cfg):
+        return grids.sample_vm(params["wm"]["grid"], xyz)
+    return position_features(params["wm"]["pos_mlp"], xyz)
+
+
+def extra_features(params: Params, cond: Any, xyz: Array, cfg: WatermarkConfig) -> Array | None:
+    """The features ``[P, X]`` the colour MLP receives for ``cond`` at ``xyz [P, 3]`` (None for waterf)."""
+    if cfg.variant == "waterf":
+        return None
+    if cfg.variant == "waterf_mod":
+        return jnp.broadcast_to(cond["emb"], (xyz.shape[0], cond["emb"].shape[-1]))
+    w = raw_features(params, xyz, cfg)
+    if cfg.variant == "no_film":
+        return jnp.concatenate([w, jnp.broadcast_to(cond["emb"], (w.shape[0], cond["emb"].shape[-1]))], -1)
+    return cond["gamma"] * w + cond["beta"]
+
+
+def colour(
+    params: Params, cond: Any, xyz: Array, viewdirs: Array, model_cfg: ModelConfig, cfg: WatermarkConfig
+) -> Array:
+    """Watermarked colour ``[P, 3]`` at normalised ``xyz [P, 3]`` along unit ``viewdirs [P, 3]``."""
+    features = field.appearance_features(params, xyz)
+    extra = extra_features(params, cond, xyz, cfg)
+    where = injection(cfg)
+    return field.colour_mlp(
+        params["mlp"],
+        features,
+        viewdirs,
+        model_cfg,
+        extra_last=extra if where == "last" else None,
+        extra_first=extra if where == "first" else None,
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class _Density:
+    model_cfg: ModelConfig
+
+    def __call__(self, params: Params, xyz: Array) -> Array:
+        return field.density(params, xyz, self.model_cfg)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Colour:
+    model_cfg: ModelConfig
+    cfg: WatermarkConfig
+
+    def __call__(self, params: Params, cond: Any, xyz: Array, viewdirs: Array) -> Array:
+        return colour(params, cond, xyz, viewdirs, self.model_cfg, self.cfg)
+
+
+def field_fns(model_cfg: ModelConfig, cfg: WatermarkConfig) -> FieldFns:
+    """FieldFns of the watermarked field (hashable: equal configs share compilations)."""
+    return FieldFns(density=_Density(model_cfg), colour=_Colour(model_cfg, cfg))
+
+
+def watermark_param_count(params: Params) -> int:
+    """Scalars added by the watermark module (``wm`` plus the MLP's extra rows)."""
+    extra = [v for k, v in params.get("mlp", {}).items() if k in ("out_extra", "in_extra")]
+    return int(field.param_count(params.get("wm", {})) + sum(math.prod(x.shape) for x in extra))

@@ -1,0 +1,372 @@
+"""Evaluation of a watermarked run: bit accuracy per ID, image quality, identification of the ID.
+
+Identification. A decoded message ``b`` (``L`` bits, logit > 0) is compared with every key ``m_n``; the best
+match is the key with the most agreeing bits ``k``. Under the null hypothesis (no watermark: decoded bits are
+fair coin flips independent of the keys) the agreement with one fixed key is ``X ~ Bin(L, ½)``, so
+
+    p = P[X ≥ k] = Σ_{j≥k} C(L, j) / 2^L
+
+and, as the best of ``N`` keys was picked, the Bonferroni-corrected ``p_N = min(1, N·p)`` bounds the chance
+that *any* key agrees this well by luck. The decision rule: report the best-matching ID when
+``p_N < threshold`` (default :data:`DEFAULT_THRESHOLD` = 1e-3, i.e. at most one false claim per thousand
+unwatermarked images), otherwise "no watermark" (ID −1). A tie between two keys at the best agreement is
+undecided (−1) too.
+
+The smallest attainable ``p_N`` is ``N / 2^L`` (all bits agree): with short messages and many IDs the
+threshold may be out of reach whatever the accuracy (4 IDs × 8 bits: 0.0156). Results therefore report both
+the *best-match* identification accuracy (the argmax is the rendered ID) and the *verified* one (argmax
+correct and ``p_N < threshold``), plus ``min_attainable_p`` so a reader can tell the two apart.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+DEFAULT_THRESHOLD = 1e-3
+NO_WATERMARK = -1
+
+
+# ---------------------------------------------------------------------------------------------- bits
+
+
+def logits_to_bits(logits: np.ndarray) -> np.ndarray:
+    """Decoded bits ``[..., L]`` uint8: 1 where the logit is > 0."""
+    return (np.asarray(logits) > 0).astype(np.uint8)
+
+
+def bit_accuracy(bits: np.ndarray, message: np.ndarray) -> np.ndarray:
+    """Fraction of matching bits ``[...]`` between decoded ``bits [..., L]`` and ``message [..., L]``."""
+    return np.mean(np.asarray(bits, np.uint8) == np.asarray(message, np.uint8), axis=-1)
+
+
+def binomial_tail(k: int, n: int) -> float:
+    """``P[X ≥ k]`` for ``X ~ Bin(n, ½)``, exact (integer arithmetic)."""
+    k = max(int(k), 0)
+    if k > n:
+        return 0.0
+    return sum(math.comb(n, j) for j in range(k, n + 1)) / float(1 << n)
+
+
+# ----------------------------------------------------------------------------------------- identification
+
+
+@dataclasses.dataclass(frozen=True)
+class Identification:
+    """Identification of a batch of ``B`` decoded messages against ``N`` keys.
+
+    best_id [B]       the key with the most agreeing bits (−1 on a tie)
+    agreement [B]     agreeing bits with that key
+    bit_accuracy [B]  agreement / L
+    p_value [B]       P[Bin(L, ½) ≥ agreement]
+    p_corrected [B]   min(1, N·p_value)
+    decision [B]      best_id where p_corrected < threshold, else −1 ("no watermark")
+    """
+
+    best_id: np.ndarray
+    agreement: np.ndarray
+    bit_accuracy: np.ndarray
+    p_value: np.ndarray
+    p_corrected: np.ndarray
+    decision: np.ndarray
+    threshold: float
+    bits: int
+    num_ids: int
+
+    @property
+    def min_attainable_p(self) -> float:
+        return min(1.0, self.num_ids / float(1 << self.bits))
+
+
+def identify(
+    decoded: np.ndarray, messages: np.ndarray, threshold: float = DEFAULT_THRESHOLD
+) -> Identification:
+    """Best-matching key, its binomial p-value and the decision for each decoded message.
+
+    Args:
+      decoded: ``[B, L]`` decoded bits (or ``[L]``).
+      messages: ``[N, L]`` keys.
+      threshold: decision threshold on the Bonferroni-corrected p-value.
+    """
+    decoded = np.atleast_2d(np.asarray(decoded, np.uint8))
+    messages = np.asarray(messages, np.uint8)
+    n_ids, bits = messages.shape
+    if decoded.shape[-1] != bits:
+        raise ValueError(f"decoded messages have {decoded.shape[-1]} bits, the keys {bits}")
+    agree = (decoded[:, None, :] == messages[None, :, :]).sum(-1)  # [B, N]
+    best = agree.max(axis=1)
+    best_id = agree.argmax(axis=1)
+    tie = (agree == best[:, None]).sum(axis=1) > 1
+    best_id = np.where(tie, NO_WATERMARK, best_id)
+    p = np.array([binomial_tail(int(k), bits) for k in best], np.float64)
+    p_corr = np.minimum(1.0, n_ids * p)
+    decision = np.where((p_corr < threshold) & ~tie, best_id, NO_WATERMARK)
+    return Identification(
+        best_id=best_id.astype(np.int64),
+        agreement=best.astype(np.int64),
+        bit_accuracy=best / bits,
+        p_value=p,
+        p_corrected=p_corr,
+        decision=decision.astype(np.int64),
+        threshold=float(threshold),
+        bits=int(bits),
+        num_ids=int(n_ids),
+    )
+
+
+def confusion_matrix(true_ids: Sequence[int], predicted: Sequence[int], num_ids: int) -> np.ndarray:
+    """``[N, N + 1]`` counts: row = rendered ID, column = predicted ID, last column = none / undecided."""
+    out = np.zeros((num_ids, num_ids + 1), np.int64)
+    for t, p in zip(true_ids, predicted, strict=True):
+        out[int(t), int(p) if 0 <= int(p) < num_ids else num_ids] += 1
+    return out
+
+
+def identification_summary(
+    true_ids: Sequence[int], ident: Identification
+) -> dict[str, Any]:
+    """Identification accuracies and the confusion matrices (best match and decision) as plain data."""
+    true = np.asarray(true_ids, np.int64)
+    best_ok = ident.best_id == true
+    verified_ok = ident.decision == true
+    return {
+        "identification_accuracy": float(best_ok.mean()) if true.size else math.nan,
+        "verified_identification_accuracy": float(verified_ok.mean()) if true.size else math.nan,
+        "detection_rate": float((ident.decision >= 0).mean()) if true.size else math.nan,
+        "threshold": ident.threshold,
+        "min_attainable_p": ident.min_attainable_p,
+        "median_p_corrected": float(np.median(ident.p_corrected)) if true.size else math.nan,
+        "confusion_best_match": confusion_matrix(true, ident.best_id, ident.num_ids).tolist(),
+        "confusion_decision": confusion_matrix(true, ident.decision, ident.num_ids).tolist(),
+    }
+
+
+def false_detection_summary(ident: Identification) -> dict[str, Any]:
+    """How often unwatermarked images are claimed (decision ≠ −1): should be ≤ the threshold."""
+    return {
+        "false_detection_rate": float((ident.decision >= 0).mean()) if ident.decision.size else math.nan,
+        "mean_best_agreement": float(ident.bit_accuracy.mean()) if ident.decision.size else math.nan,
+    }
+
+
+# ------------------------------------------------------------------------------------------- evaluation
+
+
+def _to_uint8(image: np.ndarray) -> np.ndarray:
+    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def _decode(decoder: Any, images: np.ndarray, batch: int = 16) -> np.ndarray:
+    from mnerf_jax import extract
+
+    images = np.asarray(images, np.float32)
+    return np.asarray(extract.decode(decoder.variables, images, decoder.wavelet, batch))
+
+
+def _save_and_reload_png(path: Path, image: np.ndarray) -> np.ndarray:
+    """Write an 8-bit PNG and read it back as float32 ``[H, W, 3]`` (what a viewer of the render gets)."""
+    import imageio.v3 as iio
+
+    from mnerf_jax import extract
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(path, _to_uint8(image))
+    return extract.load_image(path)
+
+
+def _quality(preds: np.ndarray, targets: np.ndarray, lpips_net: str) -> dict[str, float]:
+    from mnerf_jax import metrics
+
+    out = metrics.image_metrics(preds, targets, lpips_net=lpips_net)
+    return {k: out[k] for k in ("psnr", "ssim", "lpips")}
+
+
+def evaluate_watermarked_run(
+    run_dir: str | Path,
+    split: str = "test",
+    data_path: str | Path | None = None,
+    *,
+    max_views: int | None = None,
+    threshold: float | None = None,
+    lpips_net: str = "alex",
+    save_pngs: bool = True,
+    progress: bool = False,
+    keep_renders: bool = False,
+) -> dict[str, Any]:
+    """Evaluate a watermarked run on ``split``; writes ``run_dir/eval-<split>.json`` and returns its dict.
+
+    For every evaluated view and every ID: render (float, unclamped by nothing but the renderer's [0, 1]),
+    decode, and again after a round trip through an 8-bit PNG (``run_dir/eval-<split>/id<K>/<view>.png``).
+    The clean (pre-watermark) model of ``--from`` renders the same views: quality is reported against the
+    ground truth and against those clean renders, and the clean renders' bit accuracy against every key
+    (chance: 50 %) and false-detection rate show what an unwatermarked image decodes to.
+
+    Top-level keys: ``bit_accuracy_mean``, ``bit_accuracy_min`` (worst ID), ``bit_accuracy_png_mean``,
+    ``psnr``, ``ssim``, ``lpips`` (vs ground truth), ``psnr_clean_model`` / ``ssim_clean_model`` /
+    ``lpips_clean_model`` (vs the clean model's renders), ``clean_psnr`` (clean model vs ground truth),
+    ``identification_accuracy`` (best-matching key is the rendered ID), ``verified_identification_accuracy``
+    (and its p-value passes ``threshold``), ``clean_bit_accuracy``, ``clean_false_detection_rate``,
+    ``num_ids``, ``bits``, ``split``, ``views``, ``per_id`` and ``identification`` (confusion matrices).
+    With ``keep_renders`` the returned dict (not the file) also holds ``_renders`` ``{ID: [V, H, W, 3]}``,
+    ``_clean`` and ``_gt``.
+    """
+    from mnerf_jax import embed
+    from mnerf_jax import run as runs
+
+    run_dir = Path(run_dir)
+    run = embed.load_watermarked_run(run_dir)
+    keys = run.extras["keys"]
+    decoder = run.extras["decoder"]
+    thr = float(run.config.watermark.id_threshold if threshold is None else threshold)
+    scene_split = run.load_scene(data_path, splits=(split,)).split(split)
+    indices = runs.view_indices(len(scene_split), max_views)
+    names = [scene_split.names[i] for i in indices]
+    gt = np.asarray(scene_split.images[indices], np.float32)
+    n_ids, n_views = keys.num_ids, len(indices)
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_views * (n_ids + 1), unit="render", desc=f"evaluate {split}", dynamic_ncols=True)
+    tick = (lambda i, rgb: bar.update(1)) if bar is not None else None
+    try:
+        source = _clean_model(run)
+        clean = None
+        if source is not None:
+            clean = np.stack(runs.render_views(source, scene_split.cameras, indices, on_view=tick))
+        renders = {
+            n: np.stack(embed.render_with_id(run, n, scene_split.cameras, indices, on_view=tick))
+            for n in range(n_ids)
+        }
+    finally:
+        if bar is not None:
+            bar.close()
+
+    png_dir = run_dir / f"eval-{split}"
+    per_id, true_ids, decoded, decoded_png, all_renders = [], [], [], [], []
+    for n in range(n_ids):
+        logits = _decode(decoder, renders[n])
+        if save_pngs:
+            reloaded = np.stack([_save_and_reload_png(png_dir / f"id{n}" / f"{name}.png", img)
+                                 for name, img in zip(names, renders[n], strict=True)])  # fmt: skip
+        else:
+            reloaded = np.stack([_to_uint8(img).astype(np.float32) / 255.0 for img in renders[n]])
+        logits_png = _decode(decoder, reloaded)
+        bits, bits_png = logits_to_bits(logits), logits_to_bits(logits_png)
+        ident_n = identify(bits, keys.messages, thr)
+        per_id.append({
+            "id": n,
+            "message": "".join(str(int(b)) for b in keys.messages[n]),
+            "bit_accuracy": float(bit_accuracy(bits, keys.messages[n]).mean()),
+            "bit_accuracy_png": float(bit_accuracy(bits_png, keys.messages[n]).mean()),
+            "bit_accuracy_per_view": bit_accuracy(bits, keys.messages[n]).tolist(),
+            "identification_accuracy": float((ident_n.best_id == n).mean()),
+            "psnr": _quality(renders[n], gt, lpips_net)["psnr"],
+        })  # fmt: skip
+        true_ids += [n] * n_views
+        decoded.append(bits)
+        decoded_png.append(bits_png)
+        all_renders.append(renders[n])
+    decoded_all = np.concatenate(decoded)
+    ident = identify(decoded_all, keys.messages, thr)
+    ident_png = identify(np.concatenate(decoded_png), keys.messages, thr)
+    stacked = np.concatenate(all_renders)
+    quality = _quality(stacked, np.tile(gt, (n_ids, 1, 1, 1)), lpips_net)
+    accs = [row["bit_accuracy"] for row in per_id]
+    result: dict[str, Any] = {
+        "split": split,
+        "views": n_views,
+        "view_names": names,
+        "num_ids": n_ids,
+        "bits": keys.bits,
+        "min_hamming": keys.min_hamming,
+        "variant": run.config.watermark.variant,
+        "step": run.step,
+        "decoder_fingerprint": decoder.fingerprint,
+        "bit_accuracy_mean": float(np.mean(accs)),
+        "bit_accuracy_min": float(np.min(accs)),
+        "bit_accuracy_png_mean": float(np.mean([row["bit_accuracy_png"] for row in per_id])),
+        "psnr": quality["psnr"],
+        "ssim": quality["ssim"],
+        "lpips": quality["lpips"],
+        "lpips_net": lpips_net,
+        **identification_summary(true_ids, ident),
+        "identification_accuracy_png": float((ident_png.best_id == np.asarray(true_ids)).mean()),
+        "per_id": per_id,
+        "source_run": None if source is None else str(source.run_dir),
+    }
+    result["identification"] = {k: result.pop(k) for k in ("threshold", "min_attainable_p",
+                                                             "median_p_corrected", "confusion_best_match",
+                                                             "confusion_decision")}  # fmt: skip
+    result["identification"]["ids"] = list(range(n_ids))
+    if clean is not None:
+        vs_clean = _quality(stacked, np.tile(clean, (n_ids, 1, 1, 1)), lpips_net)
+        clean_q = _quality(clean, gt, lpips_net)
+        clean_bits = logits_to_bits(_decode(decoder, clean))
+        clean_ident = identify(clean_bits, keys.messages, thr)
+        result.update({
+            "psnr_clean_model": vs_clean["psnr"],
+            "ssim_clean_model": vs_clean["ssim"],
+            "lpips_clean_model": vs_clean["lpips"],
+            "clean_psnr": clean_q["psnr"],
+            "clean_ssim": clean_q["ssim"],
+            "clean_lpips": clean_q["lpips"],
+            "clean_bit_accuracy": float(np.mean([bit_accuracy(clean_bits, m).mean() for m in keys.messages])),
+            "clean_false_detection_rate": false_detection_summary(clean_ident)["false_detection_rate"],
+        })  # fmt: skip
+    else:
+        result.update(dict.fromkeys((
+            "psnr_clean_model", "ssim_clean_model", "lpips_clean_model", "clean_psnr", "clean_ssim",
+            "clean_lpips", "clean_bit_accuracy", "clean_false_detection_rate",
+        )))  # fmt: skip
+    runs.write_json_atomic(run_dir / f"eval-{split}.json", result)
+    if keep_renders:
+        result = {**result, "_renders": renders, "_clean": clean, "_gt": gt}
+    return result
+
+
+def _clean_model(run: Any) -> Any:
+    """The run the watermark was embedded into, or None when it is gone (clean figures are then left out)."""
+    from mnerf_jax import run as runs
+
+    source = run.extras.get("source_run")
+    if not source or runs.read_marker(source) is None:
+        return None
+    return runs.load_run(source)
+
+
+# ------------------------------------------------------------------------------------ images from files
+
+
+def identify_images(
+    run_dir: str | Path, paths: Sequence[str | Path], threshold: float | None = None
+) -> list[dict[str, Any]]:
+    """Decode image files with a watermarked run's decoder and identify the ID of each (``mnerf extract
+    --run WMRUN IMAGE...``): one record per image with the bits, the best-matching ID, its bit accuracy,
+    the corrected p-value and the decision (−1: no watermark)."""
+    from mnerf_jax import embed, extract
+
+    run = embed.load_watermarked_run(run_dir)
+    keys, decoder = run.extras["keys"], run.extras["decoder"]
+    thr = float(run.config.watermark.id_threshold if threshold is None else threshold)
+    logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet)
+    ident = identify(logits_to_bits(logits), keys.messages, thr)
+    return [
+        {
+            "image": str(p),
+            "bits": "".join(str(int(b)) for b in logits_to_bits(row)),
+            "best_id": int(ident.best_id[i]),
+            "bit_accuracy": float(ident.bit_accuracy[i]),
+            "p_value": float(ident.p_value[i]),
+            "p_corrected": float(ident.p_corrected[i]),
+            "id": int(ident.decision[i]),
+            "threshold": thr,
+        }
+        for i, (p, row) in enumerate(zip(paths, logits, strict=True))
+    ]

@@ -1,0 +1,517 @@
+"""Embedding: patch layout, deferred back-propagation == direct gradient, optimiser groups, tiny runs."""
+
+from __future__ import annotations
+
+import atexit
+import dataclasses
+import functools
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mnerf_jax import dwt
+from mnerf_jax import embed as E
+from mnerf_jax.errors import MnerfError
+
+# ----------------------------------------------------------------------------- toy differentiable renderer
+
+
+def _toy_params(key: jax.Array) -> dict:
+    k1, k2, k3 = jax.random.split(key, 3)
+    return {
+        "w0": jax.random.normal(k1, (3, 16)) * 2.0,
+        "w1": jax.random.normal(k2, (16 + 3, 4)) * 0.5,
+        "b1": jax.random.normal(k3, (4,)) * 0.1,
+    }
+
+
+def _toy_render(
+    params: dict, rays: tuple[jax.Array, jax.Array], key: jax.Array | None
+) -> tuple[jax.Array, dict]:
+    """Emission-absorption along 8 samples per ray (jittered given a key) through a sine-feature field."""
+    origins, dirs = rays
+    t = jnp.broadcast_to(jnp.linspace(0.2, 1.8, 8)[None, :], (origins.shape[0], 8))
+    if key is not None:
+        t = t + 0.1 * jax.random.uniform(key, (origins.shape[0], 1))
+    pts = origins[:, None, :] + dirs[:, None, :] * t[..., None]  # [R, 8, 3]
+    h = jnp.sin(pts @ params["w0"])
+    view = jnp.broadcast_to(dirs[:, None], h.shape[:2] + (3,))
+    out = jnp.concatenate([h, view], -1) @ params["w1"] + params["b1"]
+    sigma = jax.nn.softplus(out[..., 0] * 3.0)
+    rgb = jax.nn.sigmoid(out[..., 1:])
+    alpha = 1.0 - jnp.exp(-sigma * 0.2)
+    trans = jnp.exp(-jnp.cumsum(jnp.concatenate([jnp.zeros_like(sigma[:, :1]), sigma[:, :-1] * 0.2], -1), -1))
+    weights = alpha * trans
+    image = (weights[..., None] * rgb).sum(1) + (1.0 - weights.sum(1, keepdims=True))
+    return image, {"samples": jnp.sum(weights > 1e-4)}
+
+
+def _toy_rays(height: int, width: int) -> tuple[jax.Array, jax.Array]:
+    ys, xs = jnp.meshgrid(jnp.linspace(-0.6, 0.6, height), jnp.linspace(-0.6, 0.6, width), indexing="ij")
+    dirs = jnp.stack([xs, ys, jnp.full_like(xs, 1.0)], -1).reshape(-1, 3)
+    dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
+    origins = jnp.broadcast_to(jnp.array([0.0, 0.0, -1.0]), dirs.shape)
+    return origins, dirs
+
+
+def _image_loss(image: jax.Array, extra: dict) -> tuple[jax.Array, dict]:
+    """A decoder-like image loss: LL2 → linear → BCE against fixed bits."""
+    feat = dwt.ll2(image[None])[0].mean(axis=(0, 1))  # [3]
+    logits = jnp.tanh(feat @ extra["w"] + extra["b"]) * 3.0
+    bits = jnp.array([1.0, 0.0, 1.0, 1.0])
+    loss = jnp.mean(jax.nn.softplus(-logits * (2 * bits - 1)))
+    return loss, {"logits": logits}
+
+
+def _patch_loss(rgb: jax.Array, target: jax.Array) -> jax.Array:
+    tv = jnp.mean(jnp.abs(rgb[1:] - rgb[:-1])) + jnp.mean(jnp.abs(rgb[:, 1:] - rgb[:, :-1]))
+    return 0.1 * jnp.mean(jnp.abs(rgb - target)) + 0.02 * tv + 0.2 * jnp.mean((rgb - target) ** 2)
+
+
+# ------------------------------------------------------------------------------------------- layout
+
+
+@pytest.mark.parametrize("h,w,s", [(32, 32, 16), (20, 27, 8), (8, 8, 64), (17, 16, 16), (5, 9, 4)])
+def test_patch_layout_covers_every_pixel_once(h: int, w: int, s: int) -> None:
+    layout = E.patch_layout(h, w, s)
+    size = min(s, h, w)
+    assert layout.size == size and layout.index.shape[1] == size * size
+    owned = np.zeros(h * w)
+    np.add.at(owned, layout.index.reshape(-1), layout.owner.reshape(-1))
+    np.testing.assert_array_equal(owned, 1.0)
+    # Every patch is a real square of the image.
+    for idx in layout.index:
+        rows, cols = np.divmod(idx.reshape(size, size), w)
+        assert (np.diff(rows, axis=0) == 1).all() and (np.diff(cols, axis=1) == 1).all()
+
+
+def test_assemble_inverts_gather() -> None:
+    h, w = 11, 13
+    layout = E.patch_layout(h, w, 4)
+    image = jax.random.uniform(jax.random.PRNGKey(0), (h, w, 3))
+    patches = image.reshape(-1, 3)[layout.index]
+    out = E.assemble(patches, jnp.asarray(layout.index), jnp.asarray(layout.owner), h, w)
+    np.testing.assert_allclose(np.asarray(out), np.asarray(image))
+
+
+# -------------------------------------------------------------------------------- deferred == direct
+
+
+def _gradients(height: int, width: int, patch: int, use_patch_loss: bool = True):
+    params = _toy_params(jax.random.PRNGKey(1))
+    extra = {"w": jax.random.normal(jax.random.PRNGKey(2), (3, 4)), "b": jnp.zeros(4)}
+    rays = _toy_rays(height, width)
+    targets = jax.random.uniform(jax.random.PRNGKey(3), (height * width, 3))
+    layout = E.patch_layout(height, width, patch)
+    args = (jnp.asarray(layout.index), jnp.asarray(layout.owner), jax.random.PRNGKey(4), height, width)
+    ploss = _patch_loss if use_patch_loss else None
+    loss_d, _, image, g_params_d, g_extra_d = jax.jit(
+        lambda p, e: E.deferred_grad(_toy_render, _image_loss, ploss, p, e, rays, targets, *args[:3],
+                                     height, width)
+    )(params, extra)
+    (loss_r, _), (g_params_r, g_extra_r) = jax.value_and_grad(
+        lambda p, e: E.direct_objective(_toy_render, _image_loss, ploss, p, e, rays, targets, *args[:3],
+                                        height, width),
+        argnums=(0, 1),
+        has_aux=True,
+    )(params, extra)
+    return (loss_d, g_params_d, g_extra_d), (loss_r, g_params_r, g_extra_r), image, layout
+
+
+def _assert_trees_close(a, b, tol=1e-4) -> None:
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        scale = max(1.0, float(jnp.max(jnp.abs(y))))
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=tol * scale, rtol=0)
+
+
+def test_deferred_gradient_equals_direct_gradient() -> None:
+    # 13×10 pixels in 4-px patches: border patches overlap, every patch is jittered with its own key.
+    h, w, patch = 13, 10, 4
+    deferred, direct, image, layout = _gradients(h, w, patch)
+    assert abs(float(deferred[0]) - float(direct[0])) < 1e-5
+    _assert_trees_close(deferred[1], direct[1])
+    _assert_trees_close(deferred[2], direct[2])
+    # Not vacuous: the gradients are far from zero.
+    assert float(jnp.abs(direct[1]["w0"]).max()) > 1e-3
+    # The graph-free render is the jittered image the patches re-render.
+    rays = _toy_rays(h, w)
+    params = _toy_params(jax.random.PRNGKey(1))
+    keys = E.patch_keys(jax.random.PRNGKey(4), layout.num_patches)
+    pairs = zip(layout.index, keys, strict=True)
+    patches = [_toy_render(params, E.gather_rays(rays, i), k)[0] for i, k in pairs]
+    expected = E.assemble(jnp.stack(patches), jnp.asarray(layout.index), jnp.asarray(layout.owner), h, w)
+    np.testing.assert_allclose(np.asarray(image), np.asarray(expected), atol=1e-6)
+
+
+def test_deferred_gradient_equals_one_full_render_gradient() -> None:
+    # With no jitter shared between patches, the reference is one render of all rays at once.
+    h, w = 12, 12
+    params = _toy_params(jax.random.PRNGKey(5))
+    extra = {"w": jax.random.normal(jax.random.PRNGKey(6), (3, 4)), "b": jnp.zeros(4)}
+    rays = _toy_rays(h, w)
+    targets = jax.random.uniform(jax.random.PRNGKey(7), (h * w, 3))
+    layout = E.patch_layout(h, w, 5)  # 5 does not divide 12: overlapping border patches
+    fixed = lambda p, r, k: _toy_render(p, r, None)  # no jitter: per-ray results independent of batching
+    idx, own = jnp.asarray(layout.index), jnp.asarray(layout.owner)
+
+    def full(p, e):
+        image = fixed(p, rays, None)[0].reshape(h, w, 3)
+        loss, _ = _image_loss(image, e)
+        flat = image.reshape(-1, 3)
+        s = layout.size
+        patch = sum(_patch_loss(flat[i].reshape(s, s, 3), targets[i].reshape(s, s, 3)) for i in layout.index)
+        return loss + patch
+
+    g_ref = jax.grad(full, argnums=(0, 1))(params, extra)
+    _, _, _, g_p, g_e = E.deferred_grad(
+        fixed, _image_loss, _patch_loss, params, extra, rays, targets, idx, own, jax.random.PRNGKey(9), h, w
+    )
+    _assert_trees_close(g_p, g_ref[0])
+    _assert_trees_close(g_e, g_ref[1])
+
+
+def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_losses() -> None:
+    # The watermarked TensoRF through render_rays (dense budgets, no jitter), the decoder's BCE on LL2 plus
+    # Watson, and the phase-2 patch loss (L1 + TV + SSIM) on overlapping 11-px patches of a 13×12 image.
+    from mnerf_jax import decoder, field, losses, render, watermark
+    from mnerf_jax.config import ModelConfig, WatermarkConfig
+
+    model = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(3, 3, 3), app_features=6, mlp_width=16,
+                        density_shift=0.0)  # fmt: skip
+    cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
+    base = field.init_field(jax.random.PRNGKey(0), model, (6, 6, 6))
+    base["density"] = jax.tree.map(lambda a: a + 0.6, base["density"])  # visible matter
+    params = watermark.add_watermark(jax.random.PRNGKey(1), base, cfg, 3, extra_scale=0.3)
+    fns = watermark.field_fns(model, cfg)
+    # Semi-transparent matter (σ ≈ 2, Δt = 0.3, distance scale 1): every sample gets gradient.
+    geometry = render.make_geometry(np.array([[-1.5] * 3, [1.5] * 3]), (6, 6, 6), n_samples=24,
+                                    distance_scale=1.0)  # fmt: skip
+    h, w = 13, 12
+    ys, xs = jnp.meshgrid(jnp.linspace(-0.35, 0.35, h), jnp.linspace(-0.35, 0.35, w), indexing="ij")
+    dirs = jnp.stack([xs, ys, -jnp.ones_like(xs)], -1).reshape(-1, 3)
+    dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
+    rays = (jnp.broadcast_to(jnp.array([0.0, 0.0, 4.0]), dirs.shape), dirs)
+    targets = jax.random.uniform(jax.random.PRNGKey(2), (h * w, 3))
+    dec = decoder.init_decoder(jax.random.PRNGKey(3), 8)
+    message = jnp.array([1, 0, 1, 1, 0, 0, 1, 0], jnp.float32)
+
+    def render_fn(p, r, k):
+        out = render.render_rays(fns, p, watermark.condition(p, 1, cfg), r[0], r[1], geometry, k, train=False,
+                                 density_budget=None, colour_budget=None)  # fmt: skip
+        return out["rgb"], {}
+
+    def image_loss(image, dec_params):
+        logits = decoder.apply_ll2({"params": dec_params, "batch_stats": dec["batch_stats"]},
+                                   dwt.ll2(image[None]))[0]  # fmt: skip
+        loss = 0.95 * losses.bce_with_logits(logits, message) + 0.05 * losses.watson_dct_loss(
+            image, targets.reshape(h, w, 3))
+        return loss, {}
+
+    ploss = functools.partial(E.patch_loss, cfg)
+    layout = E.patch_layout(h, w, 11)
+    index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
+    _, _, image, g_params, g_dec = jax.jit(
+        lambda p, d: E.deferred_grad(render_fn, image_loss, ploss, p, d, rays, targets, index, owner,
+                                     jax.random.PRNGKey(4), h, w)
+    )(params, dec["params"])  # fmt: skip
+
+    def full(p, d):
+        rgb, _ = render_fn(p, rays, None)
+        loss, _ = image_loss(rgb.reshape(h, w, 3), d)
+        for idx in layout.index:
+            loss = loss + ploss(rgb[idx].reshape(11, 11, 3), targets[idx].reshape(11, 11, 3))
+        return loss
+
+    ref_params, ref_dec = jax.jit(jax.grad(full, argnums=(0, 1)))(params, dec["params"])
+    assert float(jnp.mean(image)) < 0.9  # rays meet matter, not just the white background
+    _assert_trees_close(g_params, ref_params)
+    _assert_trees_close(g_dec, ref_dec)
+    assert float(jnp.abs(ref_params["wm"]["grid"]["planes"][0]).max()) > 0
+
+
+def _temp_bytes(height: int, deferred: bool) -> int:
+    """XLA's temporary memory of one gradient computation on a ``height²`` image with 8-px patches."""
+    params = _toy_params(jax.random.PRNGKey(1))
+    extra = {"w": jnp.ones((3, 4)), "b": jnp.zeros(4)}
+    rays = _toy_rays(height, height)
+    targets = jnp.zeros((height * height, 3))
+    layout = E.patch_layout(height, height, 8)
+    index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
+    args = (rays, targets, index, owner, jax.random.PRNGKey(0), height, height)
+    if deferred:
+        fn = lambda p, e: E.deferred_grad(_toy_render, _image_loss, _patch_loss, p, e, *args)
+    else:
+        fn = lambda p, e: jax.grad(
+            lambda q: E.direct_objective(_toy_render, _image_loss, _patch_loss, q, e, *args)[0]
+        )(p)
+    return jax.jit(fn).lower(params, extra).compile().memory_analysis().temp_size_in_bytes
+
+
+def test_deferred_memory_follows_the_patch_not_the_image() -> None:
+    # 16x the pixels: the direct gradient's working memory grows with the image, the deferred one barely.
+    small, large = _temp_bytes(16, True), _temp_bytes(64, True)
+    direct_small, direct_large = _temp_bytes(16, False), _temp_bytes(64, False)
+    assert large < 2.0 * small
+    assert direct_large > 8.0 * direct_small and direct_large > 10 * large
+
+
+# ------------------------------------------------------------------------------------- tiny real runs
+
+TINY_FIT = [
+    "data.procedural_size=32", "data.procedural_views=12", "train.n_iters=150", "train.batch_size=1024",
+    "train.n_voxel_init=27000", "train.n_voxel_final=27000", "train.upsample_steps=",
+    "train.alpha_mask_steps=", "train.checkpoint_every=150", "model.density_ranks=4,4,4",
+    "model.appearance_ranks=8,8,8", "model.app_features=12", "model.mlp_width=32",
+]  # fmt: skip
+TINY_EMBED = [
+    "watermark.patch_size=16", "watermark.phase1_steps=40", "watermark.phase2_steps=40",
+    "watermark.checkpoint_every=40", "watermark.wm_ranks=4,4,4",
+]  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class TinyRuns:
+    root: Path
+    fit: Path
+    decoder: Path
+    wm: Path
+    seconds: float
+
+
+def _random_decoder(path: Path, bits: int, images: np.ndarray) -> Path:
+    """A deterministic random-init decoder, whitened on the scene's images (no decoder training needed)."""
+    from mnerf_jax import decoder
+
+    rng = np.random.default_rng(0)
+    batch = np.concatenate([images, images[:, ::-1], images[:, :, ::-1],
+                            np.clip(images + rng.normal(0, 0.05, images.shape), 0, 1)]).astype(np.float32)
+    variables = decoder.init_decoder(jax.random.PRNGKey(0), bits)
+    variables = decoder.fit_whitening(variables, [dwt.ll2(jnp.asarray(batch))])
+    decoder.save_decoder(path, variables, {"note": "random init, whitened on the procedural scene (tests)"})
+    return path
+
+
+@functools.cache
+def tiny_runs() -> TinyRuns:
+    """A fitted 32-px procedural TensoRF, a random 8-bit decoder, and a 2-ID watermarked run (built once)."""
+    from mnerf_jax.commands.fit import fit_run
+    from mnerf_jax.config import load_config
+    from mnerf_jax.data import load_scene
+
+    root = Path(tempfile.mkdtemp(prefix="mnerf-embed-test-"))
+    atexit.register(shutil.rmtree, root, True)
+    config = load_config("procedural", TINY_FIT)
+    fit_run(config, None, root / "fit", evaluate=False, quiet=True)
+    scene = load_scene(None, config.data, config.render, ("train",))
+    decoder = _random_decoder(root / "dec8.npz", 8, scene.split("train").images)
+    t0 = time.perf_counter()
+    E.embed(root / "fit", root / "wm", 2, 8, overrides=TINY_EMBED, decoder_path=decoder, progress=False)
+    return TinyRuns(root, root / "fit", decoder, root / "wm", time.perf_counter() - t0)
+
+
+@pytest.fixture(scope="session")
+def tiny() -> TinyRuns:
+    return tiny_runs()
+
+
+def test_tiny_embed_writes_a_complete_watermarked_run(tiny: TinyRuns) -> None:
+    from mnerf_jax import keys as K
+    from mnerf_jax import run as runs
+
+    wm = tiny.wm
+    for name in ("run.json", "config.json", "keys.json", "decoder.npz", "embed.json"):
+        assert (wm / name).is_file(), name
+    marker = runs.read_marker(wm)
+    assert marker["kind"] == "multinerf" and marker["num_ids"] == 2 and marker["bits"] == 8
+    keys = K.load_keys(wm, expect_bits=8)
+    assert keys.num_ids == 2 and K.min_pairwise_hamming(keys.messages) >= keys.min_hamming >= 2
+    progress = json.loads((wm / "embed.json").read_text())
+    assert progress["steps_done"] == 80 and progress["phase"] == 2
+    # The decoder was fine-tuned in phase 2, and keys.json names the decoder saved with the run.
+    from mnerf_jax import decoder
+
+    saved = decoder.load_decoder(wm / "decoder.npz")
+    start = decoder.load_decoder(tiny.decoder)
+    assert keys.decoder_fingerprint == saved.fingerprint != start.fingerprint
+    loaded = runs.load_run(wm)
+    assert loaded.kind == "multinerf" and loaded.step == 80 and loaded.extras["num_ids"] == 2
+
+
+def test_loaded_run_renders_each_id_differently(tiny: TinyRuns) -> None:
+    from mnerf_jax import run as runs
+
+    loaded = E.load_watermarked_run(tiny.wm)
+    split = loaded.load_scene(splits=("test",)).split("test")
+    a, a2, b = (E.render_with_id(loaded, i, split.cameras, [0])[0] for i in (0, 0, 1))
+    np.testing.assert_array_equal(a, a2)
+    assert np.abs(a - b).max() > 1e-2
+    assert E.with_id(loaded, 1).extras["id"] == 1
+    with pytest.raises(MnerfError, match="outside"):
+        E.with_id(loaded, 2)
+    plain = runs.load_run(tiny.fit)
+    with pytest.raises(MnerfError, match="not a watermarked run"):
+        E.with_id(plain, 0)
+
+
+def test_resume_continues_exactly(tiny: TinyRuns) -> None:
+    # 3 steps, stop, resume to 5  ==  5 steps in one go.
+    root = tiny.root
+    args = dict(overrides=TINY_EMBED, decoder_path=tiny.decoder, progress=False)
+    E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=3, **args)
+    with pytest.raises(MnerfError, match="--resume"):
+        E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=5, **args)
+    resumed = E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=5, resume=True, **args)
+    E.embed(tiny.fit, root / "r_once", 2, 8, stop_at=5, **args)
+    assert resumed.steps == 5
+    a = E.load_watermarked_run(root / "r_split")
+    b = E.load_watermarked_run(root / "r_once")
+    assert a.step == b.step == 5
+    for x, y in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
+    assert json.loads((root / "r_split" / "keys.json").read_text())["messages"] == json.loads(
+        (root / "r_once" / "keys.json").read_text())["messages"]
+
+
+# ------------------------------------------------------------------------------------------- bad input
+
+
+def _cli(*argv: str) -> tuple[int, str]:
+    import contextlib
+    import io
+
+    from mnerf_jax import cli
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        code = cli.main(list(argv))
+    return code, err.getvalue()
+
+
+def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path) -> None:
+    base = ["embed", "--from", str(tiny.fit), "--decoder", str(tiny.decoder), "--quiet"]
+    cases = [
+        (["embed", "--from", str(tmp_path), "--out", str(tmp_path / "o1"), "--num-ids", "2", "--bits", "8"],
+         "not a fitted TensoRF"),
+        (["embed", "--from", str(tiny.wm), "--out", str(tmp_path / "o2"), "--num-ids", "2", "--bits", "8"],
+         "'multinerf' run, not a fitted TensoRF"),
+        ([*base, "--out", str(tmp_path / "o3"), "--num-ids", "2", "--bits", "16"], "reads 8-bit messages"),
+        ([*base, "--out", str(tmp_path / "o4"), "--num-ids", "300", "--bits", "8"], "more than 8 bits"),
+        ([*base, "--out", str(tmp_path / "o5"), "--num-ids", "2", "--bits", "8", "--set",
+          "watermark.variant=waterf"], "--num-ids 1"),
+        ([*base, "--out", str(tmp_path / "o6"), "--num-ids", "2", "--bits", "8", "--set",
+          "model.mlp_width=64"], "may not change model"),
+        ([*base, "--out", str(tmp_path / "o7"), "--num-ids", "2", "--bits", "8", "--set",
+          "watermark.augment_strength=extreme"], "augment_strength"),
+        ([*base, "--out", str(tiny.wm), "--num-ids", "2", "--bits", "8"], "--resume"),
+    ]  # fmt: skip
+    for argv, message in cases:
+        code, err = _cli(*argv)
+        assert code == 2, (argv, err)
+        lines = [line for line in err.splitlines() if line.strip()]
+        assert len(lines) == 1 and lines[0].startswith("mnerf: error:") and message in lines[0], err
+    for name in ("o1", "o2", "o3", "o4", "o5", "o6", "o7"):
+        assert not (tmp_path / name).exists(), name
+
+
+def test_watermarked_run_without_keys_or_with_foreign_keys_is_refused(tiny: TinyRuns, tmp_path: Path) -> None:
+    from mnerf_jax import keys as K
+    from mnerf_jax import run as runs
+
+    copy = tmp_path / "wm"
+    shutil.copytree(tiny.wm, copy)
+    (copy / "keys.json").unlink()
+    with pytest.raises(MnerfError, match="no keys.json"):
+        runs.load_run(copy)
+    code, err = _cli("embed", "--from", str(tiny.fit), "--out", str(copy), "--num-ids", "2", "--bits", "8",
+                     "--decoder", str(tiny.decoder), "--resume", "--quiet")  # fmt: skip
+    assert code == 2 and "no keys.json" in err
+    # Keys of another bit length than the run's decoder.
+    K.save_keys(copy, K.generate_keys(2, 16, 0, 0))
+    with pytest.raises(MnerfError, match="16 bits but the decoder reads 8"):
+        runs.load_run(copy)
+    # Keys made for another decoder.
+    K.save_keys(copy, K.generate_keys(2, 8, 0, 0, decoder_fingerprint="0" * 64))
+    with pytest.raises(MnerfError, match="embedded for decoder"):
+        runs.load_run(copy)
+
+
+def test_non_rgb_images_are_refused() -> None:
+    with pytest.raises(MnerfError, match="RGB"):
+        E.check_rgb_images(np.zeros((2, 8, 8, 4), np.float32), "scene")
+    with pytest.raises(MnerfError, match="RGB"):
+        E.check_rgb_images(np.zeros((2, 8, 8), np.float32), "scene")
+    assert E.check_rgb_images(np.zeros((1, 8, 8, 3)), "scene").dtype == np.float32
+
+
+# ------------------------------------------------------------------------------------------- optimiser
+
+
+def _wm_params(variant: str) -> dict:
+    from mnerf_jax import field, watermark
+    from mnerf_jax.config import ModelConfig, WatermarkConfig
+
+    model = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(2, 2, 2), app_features=4, mlp_width=8)
+    cfg = WatermarkConfig(variant=variant, wm_ranks=(2, 2, 2), num_ids=1 if variant == "waterf" else 3)
+    base = field.init_field(jax.random.PRNGKey(0), model, (5, 5, 5))
+    return watermark.add_watermark(jax.random.PRNGKey(1), base, cfg, cfg.num_ids), cfg
+
+
+@pytest.mark.parametrize("variant", ["multinerf", "frozen_geometry", "waterf"])
+def test_optimizer_groups_and_learning_rates(variant: str) -> None:
+    params, cfg = _wm_params(variant)
+    dec = {"w": jnp.ones((3,))}
+    tree = {"field": params, "decoder": dec}
+    labels = E.param_labels(tree, cfg)
+    flat = {jax.tree_util.keystr(p): v for p, v in jax.tree_util.tree_leaves_with_path(labels)}
+    density = {v for k, v in flat.items() if k.startswith("['field']['density']")}
+    assert density == ({"frozen"} if variant == "frozen_geometry" else {"grid"})
+    assert {v for k, v in flat.items() if "['appearance']" in k} == {"grid"}
+    assert {v for k, v in flat.items() if "['mlp']" in k or "['basis']" in k} == {"network"}
+    if variant != "waterf":
+        assert {v for k, v in flat.items() if "['wm']['grid']" in k} == {"grid"}
+        assert {v for k, v in flat.items() if "['emb']" in k or "['mod']" in k} == {"embedding"}
+    assert {v for k, v in flat.items() if k.startswith("['decoder']")} == {"decoder"}
+    # One Adam step moves every trained leaf by about its group's learning rate; frozen leaves stay put.
+    tx = E.make_optimizer(cfg)
+    grads = jax.tree.map(jnp.ones_like, tree)
+    updates, _ = tx.update(grads, tx.init(tree), tree)
+    lr = {"grid": cfg.lr_grid, "network": cfg.lr_network, "embedding": cfg.lr_embedding,
+          "decoder": cfg.lr_decoder, "frozen": 0.0}  # fmt: skip
+    pairs = zip(jax.tree_util.tree_leaves_with_path(updates), jax.tree.leaves(labels), strict=True)
+    for (path, update), label in pairs:
+        where = jax.tree_util.keystr(path)
+        np.testing.assert_allclose(np.asarray(update), -lr[label], rtol=1e-4, err_msg=where)
+
+
+def test_learning_rates_decay_exponentially() -> None:
+    params, cfg = _wm_params("multinerf")
+    tree = {"field": {"basis": params["basis"]}, "decoder": {}}
+    tx = E.make_optimizer(cfg)
+    state = tx.init(tree)
+    grads = jax.tree.map(jnp.ones_like, tree)
+    total = E.total_steps(cfg)
+    steps = []
+    for _ in range(3):
+        updates, state = tx.update(grads, state, tree)
+        steps.append(float(updates["field"]["basis"][0, 0]))
+    ratio = cfg.lr_decay_ratio ** (1.0 / total)
+    assert steps[1] / steps[0] == pytest.approx(ratio, rel=1e-4)
+    assert steps[2] / steps[1] == pytest.approx(ratio, rel=1e-4)
+
+
+def test_phases_and_step_choices_are_deterministic() -> None:
+    from mnerf_jax.config import WatermarkConfig
+
+    cfg = WatermarkConfig(phase1_steps=3, phase2_steps=2)
+    assert [E.phase_of(s, cfg) for s in range(5)] == [1, 1, 1, 2, 2]
+    picks = [E.step_choice(0, s, 4, 10) for s in range(400)]
+    assert picks == [E.step_choice(0, s, 4, 10) for s in range(400)]
+    ids = np.array([p[0] for p in picks])
+    assert set(ids) == {0, 1, 2, 3} and abs((ids == 0).mean() - 0.25) < 0.08

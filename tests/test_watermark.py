@@ -1,0 +1,179 @@
+"""Watermark module: per-ID colours, variants, initialisation, FiLM, grid resampling."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mnerf_jax import field, grids, render
+from mnerf_jax import watermark as W
+from mnerf_jax.config import ModelConfig, WatermarkConfig
+from mnerf_jax.errors import MnerfError
+
+MODEL = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(4, 4, 4), app_features=8, mlp_width=16)
+RES = (9, 8, 7)
+
+
+def _params(cfg: WatermarkConfig, num_ids: int = 4, extra_scale: float = 0.5, seed: int = 0) -> dict:
+    k_field, k_wm = jax.random.split(jax.random.PRNGKey(seed))
+    base = field.init_field(k_field, MODEL, RES)
+    return W.add_watermark(k_wm, base, cfg, num_ids, extra_scale=extra_scale)
+
+
+def _points(n: int = 64, seed: int = 1) -> tuple[jax.Array, jax.Array]:
+    k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
+    xyz = jax.random.uniform(k1, (n, 3), minval=-1.0, maxval=1.0)
+    d = jax.random.normal(k2, (n, 3))
+    return xyz, d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def _colour(params: dict, cfg: WatermarkConfig, index: int) -> np.ndarray:
+    xyz, d = _points()
+    cond = W.condition(params, index, cfg)
+    return np.asarray(W.colour(params, cond, xyz, d, MODEL, cfg))
+
+
+@pytest.mark.parametrize("variant", [v for v in W.VARIANTS if v != "waterf"])
+def test_different_ids_give_different_colours_and_the_same_id_the_same(variant: str) -> None:
+    cfg = WatermarkConfig(variant=variant, wm_ranks=(2, 2, 2), emb_dim=4, emb_hidden=8)
+    params = _params(cfg)
+    if "mod" in params["wm"]:
+        # A trained modulator: FiLM starts near the identity (γ ≈ 1, β ≈ 0) by design.
+        params["wm"]["mod"] = jax.tree.map(lambda a: 10.0 * a, params["wm"]["mod"])
+    c0, c0_again, c1, c3 = (_colour(params, cfg, i) for i in (0, 0, 1, 3))
+    np.testing.assert_array_equal(c0, c0_again)
+    assert np.abs(c0 - c1).max() > 1e-3
+    assert np.abs(c1 - c3).max() > 1e-3
+    assert c0.shape == (64, 3) and (c0 > 0).all() and (c0 < 1).all()
+
+
+def test_waterf_has_no_id_and_refuses_several() -> None:
+    cfg = WatermarkConfig(variant="waterf")
+    params = _params(cfg, num_ids=1)
+    assert params["wm"] == {} and "out_extra" not in params["mlp"] and "in_extra" not in params["mlp"]
+    assert W.condition(params, 0, cfg) is None
+    xyz, d = _points()
+    plain = np.asarray(field.colour(params, xyz, d, MODEL))
+    np.testing.assert_array_equal(np.asarray(W.colour(params, None, xyz, d, MODEL, cfg)), plain)
+    with pytest.raises(MnerfError, match="--num-ids 1"):
+        _params(cfg, num_ids=3)
+
+
+def test_fresh_watermark_renders_the_clean_field() -> None:
+    # Small out_extra: the untrained watermarked model matches the TensoRF it starts from.
+    cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
+    k_field, k_wm = jax.random.split(jax.random.PRNGKey(3))
+    base = field.init_field(k_field, MODEL, RES)
+    params = W.add_watermark(k_wm, base, cfg, 4)
+    xyz, d = _points()
+    clean = np.asarray(field.colour(base, xyz, d, MODEL))
+    for i in range(4):
+        np.testing.assert_allclose(_colour(params, cfg, i), clean, atol=1.0 / 255)
+    # The base params are not modified.
+    assert "wm" not in base and "out_extra" not in base["mlp"]
+
+
+def test_film_is_per_id_from_the_start() -> None:
+    cfg = WatermarkConfig()
+    params = _params(cfg, num_ids=5)
+    conds = [W.condition(params, i, cfg) for i in range(5)]
+    gammas = np.stack([np.asarray(c["gamma"]) for c in conds])
+    betas = np.stack([np.asarray(c["beta"]) for c in conds])
+    assert gammas.shape == (5, 24) and betas.shape == (5, 24)
+    assert np.abs(gammas).max() < 1.5 and np.abs(betas).max() < 1.5
+    # Distinct IDs get clearly distinct modulations (not one shared FiLM plus a small per-ID part).
+    diffs = [np.abs(gammas[i] - gammas[j]).mean() for i in range(5) for j in range(i)]
+    assert min(diffs) > 0.01
+
+
+@pytest.mark.parametrize(
+    "variant,where,width",
+    [
+        ("multinerf", "out_extra", 24),
+        ("frozen_geometry", "out_extra", 24),
+        ("no_grid", "out_extra", 24),
+        ("no_film", "out_extra", 24 + 16),
+        ("early", "in_extra", 24),
+        ("waterf_mod", "in_extra", 16),
+    ],
+)
+def test_variant_structure(variant: str, where: str, width: int) -> None:
+    cfg = WatermarkConfig(variant=variant)
+    params = _params(cfg)
+    assert params["mlp"][where].shape[0] == width
+    assert ("grid" in params["wm"]) == (variant in ("multinerf", "frozen_geometry", "no_film", "early"))
+    assert ("mod" in params["wm"]) == (variant in ("multinerf", "frozen_geometry", "no_grid", "early"))
+    if "grid" in params["wm"]:
+        assert grids.vm_resolution(params["wm"]["grid"]) == RES
+        assert grids.vm_ranks(params["wm"]["grid"]) == (8, 8, 8)
+    assert W.trains_density(cfg) == (variant != "frozen_geometry")
+    assert W.watermark_param_count(params) > 0
+
+
+def test_every_watermark_part_gets_a_gradient() -> None:
+    cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
+    params = _params(cfg)
+    xyz, d = _points()
+
+    def loss(p):
+        cond = W.condition(p, 2, cfg)
+        return jnp.sum(W.colour(p, cond, xyz, d, MODEL, cfg) ** 2)
+
+    g = jax.grad(loss)(params)
+    for name, leaf in jax.tree_util.tree_leaves_with_path(g["wm"]):
+        if "emb" in jax.tree_util.keystr(name) and "w0" in jax.tree_util.keystr(name):
+            # Only the chosen ID's row of the one-hot layer moves.
+            rows = np.abs(np.asarray(leaf)).sum(1)
+            assert rows[2] > 0 and np.count_nonzero(rows) == 1
+        else:
+            assert float(jnp.abs(leaf).max()) > 0, jax.tree_util.keystr(name)
+    assert float(jnp.abs(g["mlp"]["out_extra"]).max()) > 0
+
+
+def test_unknown_variant_and_bad_ranks_are_refused() -> None:
+    with pytest.raises(MnerfError, match="unknown watermark variant"):
+        W.check_config(WatermarkConfig(variant="bogus"))
+    with pytest.raises(MnerfError, match="wm_ranks"):
+        W.check_config(WatermarkConfig(wm_ranks=(0, 0, 0)))
+
+
+def test_watermark_grid_follows_upsampling_and_shrinking() -> None:
+    params = _params(WatermarkConfig(wm_ranks=(2, 2, 2)))
+    up = W.resample_watermark(params, (12, 10, 9))
+    assert grids.vm_resolution(up["wm"]["grid"]) == (12, 10, 9)
+    up["density"] = grids.upsample_vm(up["density"], (12, 10, 9))
+    up["appearance"] = grids.upsample_vm(up["appearance"], (12, 10, 9))
+    # Shrinking with the field keeps all grids at one resolution.
+    shrunk, _ = render.shrink_field(
+        up, np.array([[-1.5] * 3, [1.5] * 3]), np.array([[-1.0, -1.0, -1.0], [1.0, 1.2, 1.0]])
+    )
+    res = grids.vm_resolution(shrunk["density"])
+    assert grids.vm_resolution(shrunk["wm"]["grid"]) == res
+    box = np.array([[-1.5] * 3, [1.5] * 3])
+    lo, hi, _ = grids.shrink_indices(box, (12, 10, 9), np.array([[-1.0] * 3, [1.0] * 3]))
+    assert grids.vm_resolution(W.shrink_watermark(up, lo, hi)["wm"]["grid"]) == tuple(
+        h - l for l, h in zip(lo, hi, strict=True)
+    )
+
+
+def test_field_fns_render_differs_by_id() -> None:
+    cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
+    params = _params(cfg, extra_scale=2.0)
+    # Dense density so that rays see colour.
+    params["density"] = jax.tree.map(lambda a: a + 1.0, params["density"])
+    fns = W.field_fns(MODEL, cfg)
+    assert fns == W.field_fns(MODEL, dataclasses.replace(cfg))  # hashable, equal: shared compilation
+    geometry = render.make_geometry(np.array([[-1.5] * 3, [1.5] * 3]), RES, n_samples=32)
+    o = jnp.tile(jnp.array([[0.0, 0.0, -4.0]]), (16, 1))
+    dirs = jnp.concatenate([jnp.linspace(-0.2, 0.2, 16)[:, None], jnp.zeros((16, 1)), jnp.ones((16, 1))], -1)
+    dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
+    outs = [
+        render.render_rays(fns, params, W.condition(params, i, cfg), o, dirs, geometry, None, train=False,
+                           density_budget=None, colour_budget=None)["rgb"]
+        for i in (0, 1)
+    ]
+    assert float(jnp.abs(outs[0] - outs[1]).max()) > 1e-3
