@@ -124,6 +124,11 @@ class WatermarkConfig:
     lr_decay_ratio: float = 0.1
     wavelet: str = "bior4.4"
     checkpoint_every: int = 100
+    seed: int = 0  # embedding randomness: module init, ID and view per step, sample jitter, augmentations
+    jitter: bool = True  # jitter samples along rays while embedding (as TensoRF's training renders)
+    id_threshold: float = 1e-3  # identification: Bonferroni-corrected binomial p-value below this
+    lr_embedding: float = 1e-2  # Emb and Mod (each ID's Emb row learns only on the steps that draw it)
+    keep_checkpoints: int = 2
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,0 +1,153 @@
+"""``mnerf demo``: the end-to-end job on the built-in procedural scene, as a list of steps.
+
+Each step is a function of a ``DemoContext``: it does one thing, records what it produced in
+``ctx.rows`` (printed as a table at the end) and may leave objects for later steps in ``ctx.state``.
+To extend the demo, add a step function to ``STEPS``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+NAME = "demo"
+HELP = "Fit the built-in procedural scene, evaluate it and render its test views and an orbit GIF."
+
+DEMO_MARKER = "demo.json"
+DEMO_CONFIG = "procedural"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--out", type=Path, default=Path("mnerf-demo"), help="output folder (default ./mnerf-demo)"
+    )
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a field of the procedural config (repeatable)")  # fmt: skip
+    parser.add_argument("--frames", type=int, default=48, help="frames of the orbit GIF (default 48)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+@dataclasses.dataclass
+class DemoContext:
+    """What the steps share: where to write, the config, results so far."""
+
+    out: Path
+    config: Any
+    frames: int = 48
+    quiet: bool = False
+    rows: list[tuple[str, str]] = dataclasses.field(default_factory=list)
+    state: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    @property
+    def run_dir(self) -> Path:
+        return self.out / "run"
+
+    def row(self, name: str, value: str) -> None:
+        self.rows.append((name, value))
+
+
+def prepare_out(ctx: DemoContext) -> None:
+    """Use ``out`` only if it is new, empty, or an earlier demo's folder (whose run is then resumed)."""
+    from mnerf_jax import run as runs
+
+    out = ctx.out
+    if out.exists() and not out.is_dir():
+        raise runs.RunError(f"--out {out} is a file, not a directory")
+    if out.exists() and any(out.iterdir()) and not (out / DEMO_MARKER).is_file():
+        raise runs.RunError(
+            f"--out {out} is not empty and is not a demo folder; choose a new or empty directory"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    runs.write_json_atomic(out / DEMO_MARKER, {"kind": "demo", "config": ctx.config.to_dict()})
+
+
+def step_fit(ctx: DemoContext) -> None:
+    """Fit the procedural scene into ``out/run`` (an earlier demo's run is resumed)."""
+    from mnerf_jax import run as runs
+    from mnerf_jax.commands.fit import fit_run
+
+    resume = runs.read_marker(ctx.run_dir) is not None
+    summary = fit_run(ctx.config, None, ctx.run_dir, resume=resume, evaluate=False, quiet=ctx.quiet)
+    ctx.state["fit"] = summary
+    ctx.row("training", f"{summary['steps']} steps, {summary['train_seconds']:.1f} s, "
+                        f"{summary['train_rays_per_s']:,.0f} rays/s")  # fmt: skip
+
+
+def step_evaluate(ctx: DemoContext) -> None:
+    """Evaluate on every test view (``out/run/eval-test.json``)."""
+    from mnerf_jax.commands.fit import evaluate_test
+
+    test = evaluate_test(ctx.run_dir, 0, quiet=ctx.quiet)
+    ctx.state["test"] = test
+    ctx.row(
+        "test PSNR / SSIM / LPIPS",
+        f"{test['psnr']:.2f} dB / {test['ssim']:.4f} / {test['lpips']:.4f} ({test['views']} views)",
+    )
+
+
+def step_render_test(ctx: DemoContext) -> None:
+    """Render every test view to ``out/test/*.png``."""
+    from mnerf_jax.commands.render import render_to
+
+    run = _loaded(ctx)
+    result = render_to(run, "test", ctx.out / "test", overwrite=True, quiet=ctx.quiet)
+    ctx.row("test renders", f"{result['views']} PNGs in {ctx.out / 'test'}")
+
+
+def step_render_orbit(ctx: DemoContext) -> None:
+    """Render an orbit around the scene to ``out/orbit/`` and ``out/orbit/path.gif``."""
+    from mnerf_jax.commands.render import render_to
+
+    run = _loaded(ctx)
+    result = render_to(
+        run, "path", ctx.out / "orbit", frames=ctx.frames, fps=24, overwrite=True, quiet=ctx.quiet
+    )
+    ctx.row("orbit", f"{result['views']} frames, {ctx.out / 'orbit' / result['video']}")
+
+
+def _loaded(ctx: DemoContext) -> Any:
+    from mnerf_jax import run as runs
+
+    if "run" not in ctx.state:
+        ctx.state["run"] = runs.load_run(ctx.run_dir)
+    return ctx.state["run"]
+
+
+STEPS: list[tuple[str, Callable[[DemoContext], None]]] = [
+    ("fit", step_fit),
+    ("evaluate", step_evaluate),
+    ("render test views", step_render_test),
+    ("render orbit", step_render_orbit),
+]
+
+
+def print_table(rows: list[tuple[str, str]], file: Any = sys.stdout) -> None:
+    width = max((len(name) for name, _ in rows), default=0)
+    for name, value in rows:
+        print(f"  {name.ljust(width)}  {value}", file=file)
+
+
+def run(args: argparse.Namespace) -> int:
+    from mnerf_jax.commands.fit import tune_host_allocator
+
+    tune_host_allocator()
+    from mnerf_jax.config import load_config
+
+    ctx = DemoContext(
+        out=args.out, config=load_config(DEMO_CONFIG, args.set), frames=args.frames, quiet=args.quiet
+    )
+    prepare_out(ctx)
+    t0 = time.perf_counter()
+    for i, (title, step) in enumerate(STEPS, 1):
+        if not ctx.quiet:
+            print(f"[{i}/{len(STEPS)}] {title}", file=sys.stderr)
+        step(ctx)
+    ctx.row("total time", f"{time.perf_counter() - t0:.1f} s")
+    print(f"mnerf demo: {ctx.out}")
+    print_table(ctx.rows)
+    return 0

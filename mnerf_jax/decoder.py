@@ -1,0 +1,347 @@
+"""The HiDDeN watermark decoder (as stable-signature and WateRF use it), PCA whitening and weights I/O.
+
+The decoder reads the level-2 LL2 sub-band of an image (``dwt.ll2``, un-normalised, roughly [0, 4]):
+
+    LL2 [B, h, w, 3] ─► 9 × (Conv3×3 pad 1 → BatchNorm(eps 1e-3) → GELU exact), channels 3→64, 7×64→64, 64→L
+                    ─► global average pool [B, L] ─► Linear(L, L) ─► whitening Linear(L, L) ─► logits [B, L]
+
+A bit is 1 where its logit is > 0. The whitening layer is the identity until :func:`fit_whitening` sets it to
+``W = diag(e^-1/2)·Vᵀ``, ``b = −W·mean`` from the covariance of the raw outputs over a set of images, which
+makes the output covariance the identity over those images.
+
+Variables are a plain pytree ``{"params": ..., "batch_stats": ...}``; the architecture (bits, channels, depth)
+is read back from the array shapes, so no module object needs to travel with them. Files are ``.npz`` archives
+(read with ``allow_pickle=False``) holding one array per leaf plus a JSON metadata entry: bits, wavelet,
+training information and a fingerprint (sha256 of the weight bytes) that :func:`load_decoder` verifies.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import io
+import json
+import os
+import zipfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mnerf_jax import dwt
+from mnerf_jax.errors import MnerfError
+
+SUPPORTED_BITS = (8, 16, 32, 48)
+SHIPPED_BITS = (16, 48)
+FORMAT = "mnerf-hidden-decoder"
+FORMAT_VERSION = 1
+_META_KEY = "__metadata__"
+ASSET_DIR = Path(__file__).resolve().parent / "assets" / "decoders"
+
+Variables = dict[str, Any]
+
+
+class ConvBNGELU(nn.Module):
+    """Conv3×3 (pad 1) → BatchNorm (eps 1e-3, torch momentum 0.1) → exact GELU: ``[B,h,w,C] → [B,h,w,F]``."""
+
+    features: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array, train: bool = False) -> jax.Array:
+        x = nn.Conv(self.features, (3, 3), padding=1, name="conv")(x)
+        # Flax's momentum is the weight of the old running value: torch's 0.1 is flax's 0.9.
+        x = nn.BatchNorm(use_running_average=not train, momentum=0.9, epsilon=1e-3, name="bn")(x)
+        return nn.gelu(x, approximate=False)
+
+
+def _identity_init(key: jax.Array, shape: tuple[int, ...], dtype: Any = jnp.float32) -> jax.Array:
+    del key
+    return jnp.eye(shape[0], shape[1], dtype=dtype)
+
+
+class HiddenDecoder(nn.Module):
+    """HiDDeN decoder over an LL2 sub-band: ``[B, h, w, 3] → logits [B, bits]``.
+
+    ``depth`` counts the blocks of ``channels`` outputs (8: the first 3→64 plus seven 64→64); one more block
+    maps to ``bits`` channels before the pool. ``whiten=False`` returns the output before the whitening layer
+    (what :func:`fit_whitening` needs).
+    """
+
+    bits: int
+    channels: int = 64
+    depth: int = 8
+
+    @nn.compact
+    def __call__(self, ll2: jax.Array, train: bool = False, whiten: bool = True) -> jax.Array:
+        x = ll2
+        for i in range(self.depth):
+            x = ConvBNGELU(self.channels, name=f"block_{i}")(x, train)
+        x = ConvBNGELU(self.bits, name=f"block_{self.depth}")(x, train)
+        x = jnp.mean(x, axis=(-3, -2))
+        x = nn.Dense(self.bits, name="linear")(x)
+        # The whitening layer is created (as the identity) even when skipped so that the variables always
+        # have the same structure.
+        whitening = nn.Dense(self.bits, kernel_init=_identity_init, name="whiten")
+        y = whitening(x)
+        return y if whiten else x
+
+
+def architecture(variables: Mapping[str, Any]) -> tuple[int, int, int]:
+    """``(bits, channels, depth)`` read from the variables' shapes."""
+    params = variables["params"]
+    bits = int(params["linear"]["kernel"].shape[-1])
+    channels = int(params["block_0"]["conv"]["kernel"].shape[-1])
+    depth = sum(1 for name in params if name.startswith("block_")) - 1
+    return bits, channels, depth
+
+
+def module_for(variables: Mapping[str, Any]) -> HiddenDecoder:
+    bits, channels, depth = architecture(variables)
+    return HiddenDecoder(bits=bits, channels=channels, depth=depth)
+
+
+def init_decoder(key: jax.Array, bits: int, channels: int = 64, depth: int = 8) -> Variables:
+    """Fresh decoder variables ``{"params", "batch_stats"}`` (whitening = identity)."""
+    if bits not in SUPPORTED_BITS:
+        raise MnerfError(
+            f"unsupported message length {bits} bits (supported: {', '.join(map(str, SUPPORTED_BITS))})"
+        )
+    module = HiddenDecoder(bits=bits, channels=channels, depth=depth)
+    # One compiled init instead of dispatching each initialiser separately.
+    return dict(jax.jit(module.init)(key, jnp.zeros((1, 8, 8, 3), jnp.float32)))
+
+
+# Jitted (a whole-network compile instead of op-by-op dispatch); inside other jitted code they simply inline.
+@functools.partial(jax.jit, static_argnames=("whiten",))
+def apply_ll2(variables: Mapping[str, Any], ll2: jax.Array, whiten: bool = True) -> jax.Array:
+    """Eval-mode logits (BatchNorm running statistics) of LL2 sub-bands ``[B, h, w, 3]`` → ``[B, bits]``."""
+    variables = {"params": variables["params"], "batch_stats": variables["batch_stats"]}
+    return module_for(variables).apply(variables, ll2, train=False, whiten=whiten)
+
+
+@jax.jit
+def apply_ll2_train(variables: Mapping[str, Any], ll2: jax.Array) -> tuple[jax.Array, Any]:
+    """Train-mode logits ``[B, bits]`` (batch statistics) and the updated ``batch_stats``."""
+    variables = {"params": variables["params"], "batch_stats": variables["batch_stats"]}
+    logits, updates = module_for(variables).apply(variables, ll2, train=True, mutable=["batch_stats"])
+    return logits, updates["batch_stats"]
+
+
+@functools.partial(jax.jit, static_argnames=("wavelet",))
+def decode_logits(variables: Mapping[str, Any], images: jax.Array, wavelet: str = "bior4.4") -> jax.Array:
+    """Eval-mode logits of rendered images ``[B, H, W, 3]`` in [0, 1] → ``[B, bits]`` (LL2 taken here)."""
+    return apply_ll2(variables, dwt.ll2(images, wavelet))
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Whitening
+
+
+def whitening_from_outputs(raw: np.ndarray, eps: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """PCA whitening of raw decoder outputs ``[N, L]``: ``(W [L, L], b [L])`` with ``W·x + b`` white.
+
+    ``W = diag(e^-1/2)·Vᵀ`` and ``b = −W·mean`` where ``(e, V)`` eigendecompose the output covariance
+    (in float64).
+    ``eps`` (relative to the largest eigenvalue) keeps a degenerate direction from blowing up.
+    """
+    raw = np.asarray(raw, np.float64)
+    if raw.ndim != 2 or raw.shape[0] <= raw.shape[1]:
+        raise MnerfError(f"whitening needs more images than bits, got outputs of shape {raw.shape}")
+    mean = raw.mean(axis=0)
+    centred = raw - mean
+    cov = centred.T @ centred / raw.shape[0]
+    e, v = np.linalg.eigh(cov)
+    e = np.maximum(e, eps * max(float(e.max()), 1e-30))
+    w = np.diag(e**-0.5) @ v.T
+    b = -w @ mean
+    return w, b
+
+
+def set_whitening(variables: Mapping[str, Any], w: np.ndarray, b: np.ndarray) -> Variables:
+    """Variables with the whitening layer set to ``y = W·x + b`` (Flax's Dense computes ``x @ kernel``)."""
+    params = dict(variables["params"])
+    dtype = params["whiten"]["kernel"].dtype
+    params["whiten"] = {"kernel": jnp.asarray(np.asarray(w).T, dtype), "bias": jnp.asarray(b, dtype)}
+    return {"params": params, "batch_stats": variables["batch_stats"]}
+
+
+def fit_whitening(variables: Mapping[str, Any], ll2_batches: list[jax.Array]) -> Variables:
+    """Fit the whitening layer to the raw outputs over the given LL2 batches (each ``[b, h, w, 3]``)."""
+    apply = jax.jit(lambda v, x: apply_ll2(v, x, whiten=False))
+    raw = np.concatenate([np.asarray(apply(variables, x)) for x in ll2_batches])
+    w, b = whitening_from_outputs(raw)
+    return set_whitening(variables, w, b)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Weights I/O
+
+
+def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, np.ndarray]:
+    out: dict[str, np.ndarray] = {}
+    for key in sorted(tree):
+        value = tree[key]
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(_flatten(value, name + "/"))
+        else:
+            out[name] = np.asarray(value)
+    return out
+
+
+def _unflatten(flat: Mapping[str, np.ndarray]) -> Variables:
+    tree: dict[str, Any] = {}
+    for name, value in flat.items():
+        node = tree
+        parts = name.split("/")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
+    return tree
+
+
+def fingerprint(variables: Mapping[str, Any]) -> str:
+    """sha256 over the leaves' names, dtypes, shapes and little-endian bytes, in sorted order."""
+    digest = hashlib.sha256()
+    for name, value in _flatten(
+        {"params": variables["params"], "batch_stats": variables["batch_stats"]}
+    ).items():
+        value = np.ascontiguousarray(value, dtype=value.dtype.newbyteorder("<"))
+        digest.update(f"{name}|{value.dtype.str}|{value.shape}\n".encode())
+        digest.update(value.tobytes())
+    return digest.hexdigest()
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadedDecoder:
+    """A decoder read from disk: its variables, bit length, wavelet and the file's metadata."""
+
+    variables: Variables
+    bits: int
+    wavelet: str
+    metadata: dict[str, Any]
+    path: Path
+
+    @property
+    def fingerprint(self) -> str:
+        return str(self.metadata["fingerprint"])
+
+
+def save_decoder(
+    path: str | Path,
+    variables: Mapping[str, Any],
+    metadata: Mapping[str, Any] | None = None,
+    wavelet: str = "bior4.4",
+) -> dict[str, Any]:
+    """Write ``variables`` and metadata to ``path`` (``.npz``, no pickle) atomically; return the metadata."""
+    bits, channels, depth = architecture(variables)
+    flat = _flatten({"params": variables["params"], "batch_stats": variables["batch_stats"]})
+    flat = {k: np.asarray(v, np.float32) for k, v in flat.items()}
+    meta = dict(metadata or {})
+    meta.update(
+        format=FORMAT,
+        version=FORMAT_VERSION,
+        bits=bits,
+        channels=channels,
+        depth=depth,
+        wavelet=wavelet,
+        fingerprint=fingerprint(_unflatten(flat)),
+    )
+    payload = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **{_META_KEY: payload}, **flat)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(buffer.getvalue())
+    os.replace(tmp, path)
+    return meta
+
+
+def _expected_shapes(bits: int, channels: int, depth: int) -> dict[str, tuple[int, ...]]:
+    module = HiddenDecoder(bits=bits, channels=channels, depth=depth)
+    shapes = jax.eval_shape(lambda: module.init(jax.random.PRNGKey(0), jnp.zeros((1, 8, 8, 3))))
+    leaves = jax.tree_util.tree_flatten_with_path(dict(shapes))[0]
+    return {"/".join(str(k.key) for k in path): tuple(leaf.shape) for path, leaf in leaves}
+
+
+def read_variables_npz(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The raw arrays and metadata of a decoder file; MnerfError for a missing or unreadable file."""
+    path = Path(path)
+    if not path.is_file():
+        raise MnerfError(f"decoder file {path} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: np.array(data[name]) for name in data.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError, zipfile.LargeZipFile) as err:
+        raise MnerfError(
+            f"decoder file {path} is corrupt or truncated ({type(err).__name__}: {err})"
+        ) from None
+    if _META_KEY not in arrays:
+        raise MnerfError(f"decoder file {path} has no metadata entry (not an mnerf decoder file)")
+    try:
+        meta = json.loads(arrays.pop(_META_KEY).tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise MnerfError(f"decoder file {path} has unreadable metadata ({err})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise MnerfError(f"decoder file {path} is not an mnerf decoder file (format {meta.get('format')!r})")
+    return arrays, meta
+
+
+def load_decoder(path: str | Path, expect_bits: int | None = None) -> LoadedDecoder:
+    """Read a decoder file written by :func:`save_decoder` (no pickle) and check it.
+
+    Raises MnerfError with a one-line message for a missing, corrupt or truncated file, a bit length other
+    than ``expect_bits``, arrays of the wrong shapes, or weights that do not match the recorded fingerprint.
+    """
+    path = Path(path)
+    arrays, meta = read_variables_npz(path)
+    try:
+        bits, channels, depth = int(meta["bits"]), int(meta["channels"]), int(meta["depth"])
+        wavelet = str(meta["wavelet"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise MnerfError(f"decoder file {path} has incomplete metadata ({err})") from None
+    if expect_bits is not None and bits != expect_bits:
+        raise MnerfError(
+            f"decoder file {path} decodes {bits}-bit messages, but {expect_bits} bits are expected"
+        )
+    if wavelet not in dwt.DEC_LO:
+        raise MnerfError(f"decoder file {path} names an unknown wavelet {wavelet!r}")
+    expected = _expected_shapes(bits, channels, depth)
+    if set(arrays) != set(expected):
+        missing = sorted(set(expected) - set(arrays)) or sorted(set(arrays) - set(expected))
+        raise MnerfError(
+            f"decoder file {path} does not hold a {bits}-bit HiDDeN decoder (mismatch at {missing[0]})"
+        )
+    for name, shape in expected.items():
+        if arrays[name].shape != shape:
+            raise MnerfError(f"decoder file {path}: {name} has shape {arrays[name].shape}, expected {shape}")
+    variables = _unflatten({k: v.astype(np.float32) for k, v in arrays.items()})
+    if fingerprint(variables) != meta.get("fingerprint"):
+        raise MnerfError(f"decoder file {path} is corrupt: its weights do not match the recorded fingerprint")
+    variables = jax.tree.map(jnp.asarray, variables)
+    return LoadedDecoder(variables=variables, bits=bits, wavelet=wavelet, metadata=meta, path=path)
+
+
+def shipped_decoder_path(bits: int) -> Path:
+    """Path of the decoder shipped inside the package for ``bits`` (16 or 48)."""
+    if bits not in SHIPPED_BITS:
+        raise MnerfError(
+            f"no shipped decoder for {bits} bits (shipped: {', '.join(map(str, SHIPPED_BITS))}); "
+            f"train one with `mnerf train-decoder --bits {bits} --out DIR`"
+        )
+    return ASSET_DIR / f"hidden_l{bits}.npz"
+
+
+def shipped_check_path(bits: int) -> Path:
+    """Path of the small fixed batch of encoded images (uint8) shipped with the ``bits`` decoder."""
+    return shipped_decoder_path(bits).with_name(f"hidden_l{bits}_check.npz")
+
+
+def load_shipped_decoder(bits: int = 16) -> LoadedDecoder:
+    return load_decoder(shipped_decoder_path(bits), expect_bits=bits)

@@ -1,0 +1,952 @@
+"""TensoRF optimisation: optimiser, schedules, the jitted train step and the ``fit`` loop.
+
+What one run does (TensoRF's train.py, step for step):
+
+- rays of every training pixel; rays that miss the aabb are dropped (non-NDC scenes);
+- every step: a batch from a random permutation of the rays (reshuffled per epoch), render with one
+  jitter per ray, loss = MSE + L1 on the density factors (+ TV on the planes, weights decaying with
+  the learning rate); Adam(0.9, 0.99) with grid factors at ``lr_grid`` and basis/MLP at
+  ``lr_network``, both multiplied by ``lr_decay_ratio ** (1 / n_iters)`` after every step;
+- after step ``u`` in ``alpha_mask_steps``: a new alpha mask; the first also shrinks the aabb to the
+  occupied box (cropping the factors and Adam's moments) and switches L1 to ``l1_weight_rest``; the
+  second drops training rays that only cross empty space (non-NDC);
+- after step ``u`` in ``upsample_steps``: factors resized to the next voxel count of the log-linear
+  schedule, a fresh Adam, learning rates back to their initial values.
+
+Determinism: the per-step PRNG key is ``fold_in(key(seed), step)`` and the batch at a step is a
+slice of a permutation seeded by ``(seed, ray-set start, epoch)``, so a resumed run repeats an
+uninterrupted one exactly.
+
+Static sample budgets: ``render_rays`` evaluates density and colour in fixed-size buffers (static
+shapes under jit; each new size is a compilation). ``SampleBudgets`` sizes them at the start of each
+phase (density predicted from the geometry, colour scaled from the last step), grows them when a
+step's counts exceed them (that step dropped samples: it is discarded and redone) and shrinks them
+at a few refit points. Steps run pipelined: step k+1 is dispatched before step k's counts are read,
+so reading them never stalls XLA; the loop pauses only at events and checkpoints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from mnerf_jax import field, grids, render
+from mnerf_jax.checkpoint import CheckpointStore, check_compatible, config_fingerprint
+from mnerf_jax.config import Config
+from mnerf_jax.data import Scene, all_rays
+from mnerf_jax.errors import MnerfError
+
+Array = jax.Array
+Params = Any
+
+GRID_GROUPS = ("density", "appearance")  # params entries trained at lr_grid; the rest at lr_network
+STATE_VERSION = 1
+
+
+# --------------------------------------------------------------------------------------------------
+# Optimiser and schedules
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class StepHyper:
+    """The hyper-parameters a train step reads (static under jit: hashable and compared by value)."""
+
+    lr_grid: float
+    lr_network: float
+    lr_factor: float  # per-step decay: lr_decay_ratio ** (1 / n_iters)
+    adam_b1: float
+    adam_b2: float
+    l1_initial: float
+    l1_rest: float
+    l1_switch: int  # steps >= this use l1_rest (the first alpha-mask step + 1; huge when none)
+    tv_density: float
+    tv_app: float
+    random_background: bool
+    weight_threshold: float  # colour only where the compositing weight exceeds this
+
+    @classmethod
+    def from_config(cls, config: Config) -> StepHyper:
+        t = config.train
+        masks = sorted(t.alpha_mask_steps)
+        return cls(
+            lr_grid=t.lr_grid,
+            lr_network=t.lr_network,
+            lr_factor=lr_factor(t.lr_decay_ratio, t.n_iters),
+            adam_b1=t.adam_b1,
+            adam_b2=t.adam_b2,
+            l1_initial=t.l1_weight_initial,
+            l1_rest=t.l1_weight_rest,
+            l1_switch=masks[0] + 1 if masks else 2**31 - 1,
+            tv_density=t.tv_weight_density,
+            tv_app=t.tv_weight_app,
+            random_background=t.random_background,
+            weight_threshold=config.render.weight_threshold,
+        )
+
+
+def lr_factor(decay_ratio: float, n_iters: int) -> float:
+    """Per-step learning-rate multiplier that reaches ``decay_ratio`` after ``n_iters`` steps."""
+    return float(decay_ratio ** (1.0 / max(int(n_iters), 1)))
+
+
+def param_labels(params: Params) -> dict[str, Any]:
+    """``"grid"`` for the VM factor entries of ``params``, ``"network"`` for everything else."""
+    return {
+        k: jax.tree.map(lambda _, k=k: "grid" if k in GRID_GROUPS else "network", v)
+        for k, v in params.items()
+    }
+
+
+def make_optimizer(hyper: StepHyper) -> optax.GradientTransformation:
+    """Adam with per-group base learning rates (the per-step decay is applied by the train step)."""
+    return optax.chain(
+        optax.scale_by_adam(b1=hyper.adam_b1, b2=hyper.adam_b2, eps=1e-8),
+        optax.multi_transform(
+            {"grid": optax.scale(-hyper.lr_grid), "network": optax.scale(-hyper.lr_network)}, param_labels
+        ),
+    )
+
+
+def learning_rates(hyper: StepHyper, step: int, lr_base_step: int) -> dict[str, float]:
+    """The learning rates used by step ``step`` (0-based) after a reset at ``lr_base_step``."""
+    scale = hyper.lr_factor ** (step - lr_base_step)
+    return {"grid": hyper.lr_grid * scale, "network": hyper.lr_network * scale}
+
+
+def voxel_steps(config: Config) -> dict[int, int]:
+    """``{upsample step: voxel count after it}`` (TensoRF's log-linear schedule)."""
+    t = config.train
+    steps = sorted(t.upsample_steps)
+    return dict(zip(steps, grids.voxel_schedule(t.n_voxel_init, t.n_voxel_final, steps), strict=True))
+
+
+# --------------------------------------------------------------------------------------------------
+# Train state and step
+# --------------------------------------------------------------------------------------------------
+
+
+@flax.struct.dataclass
+class TrainState:
+    """Everything the jitted step reads and writes.
+
+    Attributes:
+      params: field params (``field.init_field`` layout).
+      opt_state: optax state of ``make_optimizer``.
+      step: ``[]`` int32, steps completed.
+      lr_base_step: ``[]`` int32, step at which the learning rates were last reset.
+      key: PRNG key of the run; step ``s`` uses ``fold_in(key, s)``.
+      geometry: aabb, alpha mask, marching step, samples per ray (``render.Geometry``).
+    """
+
+    params: Params
+    opt_state: Any
+    step: Array
+    lr_base_step: Array
+    key: Array
+    geometry: render.Geometry
+
+    @property
+    def resolution(self) -> tuple[int, int, int]:
+        return grids.vm_resolution(self.params["density"])
+
+
+def step_key(state: TrainState) -> Array:
+    """The PRNG key of the state's next step."""
+    return jax.random.fold_in(state.key, state.step)
+
+
+def _loss_fn(
+    params: Params,
+    state: TrainState,
+    rays_o: Array,
+    rays_d: Array,
+    rgb: Array,
+    key: Array,
+    fns: render.FieldFns,
+    hyper: StepHyper,
+    density_budget: int,
+    colour_budget: int,
+) -> tuple[Array, dict[str, Array]]:
+    k_jitter, k_bg = jax.random.split(key)
+    bg = None
+    if hyper.random_background and not state.geometry.white_bg:
+        # TensoRF composites a black-background scene on white in half of the training steps.
+        bg = jnp.where(jax.random.uniform(k_bg) < 0.5, 1.0, 0.0) * jnp.ones((3,), jnp.float32)
+    out = render.render_rays(
+        fns, params, None, rays_o, rays_d, state.geometry, k_jitter, train=True, bg=bg,
+        density_budget=density_budget, colour_budget=colour_budget, weight_threshold=hyper.weight_threshold,
+    )  # fmt: skip
+    mse = jnp.mean(jnp.square(out["rgb"] - rgb))
+    loss = mse
+    l1_weight = jnp.where(state.step >= hyper.l1_switch, hyper.l1_rest, hyper.l1_initial)
+    if hyper.l1_initial > 0 or hyper.l1_rest > 0:
+        loss = loss + l1_weight * grids.l1_density(params["density"])
+    # TensoRF multiplies the TV weights by the lr factor before each use: w0 * f^(step + 1).
+    tv_decay = hyper.lr_factor ** (state.step.astype(jnp.float32) + 1.0)
+    if hyper.tv_density > 0:
+        loss = loss + hyper.tv_density * tv_decay * grids.tv_plane(params["density"])
+    if hyper.tv_app > 0:
+        loss = loss + hyper.tv_app * tv_decay * grids.tv_plane(params["appearance"])
+    aux = {
+        "loss": loss,
+        "mse": mse,
+        "density_count": out["density_count"],
+        "colour_count": out["colour_count"],
+    }
+    return loss, aux
+
+
+@functools.partial(jax.jit, static_argnames=("fns", "hyper", "density_budget", "colour_budget"))
+def train_step(
+    state: TrainState,
+    rays_o: Array,
+    rays_d: Array,
+    rgb: Array,
+    key: Array | None = None,
+    *,
+    fns: render.FieldFns,
+    hyper: StepHyper,
+    density_budget: int,
+    colour_budget: int,
+) -> tuple[TrainState, dict[str, Array]]:
+    """One optimisation step on a batch of rays.
+
+    Args:
+      state: the train state (its ``step`` selects the learning rates).
+      rays_o, rays_d, rgb: ``[B, 3]`` ray origins, directions and target colours in [0, 1].
+      key: PRNG key of this step (sample jitter, background coin); default ``step_key(state)``,
+        which makes a run a function of its seed.
+      fns: the field functions (static).
+      hyper: step hyper-parameters (static).
+      density_budget, colour_budget: static sample buffer sizes (see ``render.render_rays``).
+
+    Returns:
+      ``(new state, metrics)`` with scalar ``loss``, ``mse``, ``psnr``, ``density_count``,
+      ``colour_count``. If a count exceeds its budget, samples were dropped: discard the new state.
+    """
+    key = step_key(state) if key is None else key
+    grads, aux = jax.grad(_loss_fn, has_aux=True)(
+        state.params, state, rays_o, rays_d, rgb, key, fns, hyper, density_budget, colour_budget
+    )
+    tx = make_optimizer(hyper)
+    updates, opt_state = tx.update(grads, state.opt_state, state.params)
+    lr_scale = jnp.power(jnp.float32(hyper.lr_factor), (state.step - state.lr_base_step).astype(jnp.float32))
+    updates = jax.tree.map(lambda u: u * lr_scale, updates)
+    params = optax.apply_updates(state.params, updates)
+    new_state = state.replace(params=params, opt_state=opt_state, step=state.step + 1)
+    aux["psnr"] = -10.0 * jnp.log10(jnp.maximum(aux["mse"], 1e-12))
+    return new_state, aux
+
+
+# --------------------------------------------------------------------------------------------------
+# Sample budgets
+# --------------------------------------------------------------------------------------------------
+
+
+def ladder(needed: float, minimum: int = 1024) -> int:
+    """Smallest size ``>= needed`` on a ladder of 2 sizes per octave (2^k and 1.5 * 2^k).
+
+    Few distinct sizes keep recompilations rare; at most a third of a buffer is slack.
+    """
+    return render.ladder_budget(needed, steps_per_octave=2, minimum=minimum)
+
+
+@dataclasses.dataclass
+class SampleBudgets:
+    """Density / colour buffer sizes of the train step.
+
+    Every new size costs a compilation (seconds on a CPU), so sizes change rarely: set at the start
+    of a phase (new grid or alpha mask) from estimates, grown after an overflow (the step is redone),
+    shrunk at a few refit points when at most half used and the phase has steps left to profit.
+    A refit decided from the counts of step k takes effect at step k + 2 (step k + 1 may already be
+    running: the loop is pipelined), whether or not the loop paused in between. All of it is a
+    function of the observed counts and is checkpointed, so a resumed run compiles and computes
+    exactly as the uninterrupted one.
+    """
+
+    density: int
+    colour: int
+    peak_density: int = 0
+    peak_colour: int = 0
+    next_step: int = -1  # a refit (next_density, next_colour) takes effect at this step; -1: none
+    next_density: int = 0
+    next_colour: int = 0
+    last_colour: int = 0  # colour count of the latest applied step ...
+    last_samples: int = 0  # ... and its samples per ray (to scale it to a new grid)
+    headroom: float = 1.25  # slack over the largest count seen when a budget is refitted
+    growth: float = 1.5  # after an overflow: the count times this (counts rise fast early on)
+    shrink_below: float = 0.5  # refit only budgets used below this fraction
+    min_remaining: int = 30  # ... and only with at least this many steps left in the phase
+
+    def for_step(self, step: int) -> tuple[int, int]:
+        """``(density, colour)`` budgets for dispatching step ``step`` (no side effects).
+
+        Colour is only evaluated at samples that had a density, so its budget never exceeds that.
+        """
+        if 0 <= self.next_step <= step:
+            return self.next_density, min(self.next_colour, self.next_density)
+        return self.density, min(self.colour, self.density)
+
+    def start_phase(self, density_estimate: float, colour_estimate: float, cap: int) -> None:
+        """Budgets for a new phase from estimated counts; forget peaks and pending refits."""
+        self.density = min(cap, ladder(density_estimate))
+        self.colour = min(cap, ladder(colour_estimate))
+        self.peak_density = self.peak_colour = 0
+        self.next_step = -1
+
+    def colour_estimate(self, n_samples: int) -> float | None:
+        """The latest colour count scaled to ``n_samples`` per ray, with headroom (None: none seen)."""
+        if self.last_samples <= 0:
+            return None
+        return self.last_colour * n_samples / self.last_samples * self.headroom
+
+    def observe(self, step: int, density_count: int, colour_count: int, n_samples: int, cap: int) -> bool:
+        """Record the counts of step ``step``; on overflow grow the budgets and return True (redo it)."""
+        used = self.for_step(step)
+        if density_count > used[0] or colour_count > used[1]:
+            if density_count > used[0]:
+                self.density = min(cap, max(self.density, ladder(density_count * self.growth)))
+            if colour_count > used[1]:
+                self.colour = min(cap, max(self.colour, ladder(colour_count * self.growth)))
+            self.next_step = -1
+            return True
+        self.peak_density = max(self.peak_density, density_count)
+        self.peak_colour = max(self.peak_colour, colour_count)
+        self.last_colour, self.last_samples = colour_count, n_samples
+        if 0 <= self.next_step <= step + 1:  # the refit is in use from the next step on: commit it
+            self.density, self.colour, self.next_step = self.next_density, self.next_colour, -1
+        return False
+
+    def schedule_refit(self, effective_step: int, cap: int, remaining: int) -> None:
+        """From ``effective_step`` on, shrink budgets whose peak use since the last refit is low.
+
+        ``remaining``: steps left in the phase; with fewer than ``min_remaining`` the compilation
+        would cost more than the smaller buffers save.
+        """
+        sizes = []
+        for name in ("density", "colour"):
+            peak, size = getattr(self, f"peak_{name}"), getattr(self, name)
+            if peak and peak * self.headroom < self.shrink_below * size and remaining >= self.min_remaining:
+                size = min(cap, ladder(peak * self.headroom))
+            sizes.append(size)
+        self.peak_density = self.peak_colour = 0
+        if tuple(sizes) != (self.density, self.colour):
+            self.next_step, self.next_density, self.next_colour = effective_step, sizes[0], sizes[1]
+
+    def to_dict(self) -> dict[str, int]:
+        names = (
+            "density",
+            "colour",
+            "peak_density",
+            "peak_colour",
+            "next_step",
+            "next_density",
+            "next_colour",
+            "last_colour",
+            "last_samples",
+        )
+        return {name: getattr(self, name) for name in names}
+
+
+REFIT_AFTER = (8, 32, 100)  # steps into a phase at which budgets may shrink ...
+REFIT_EVERY = 250  # ... and then every this many steps
+
+
+def _refit_due(step: int, phase_start: int) -> bool:
+    """Whether budgets are refitted after ``step`` steps (a phase began at ``phase_start``)."""
+    local = step - phase_start
+    return local in REFIT_AFTER or (local > 0 and local % REFIT_EVERY == 0)
+
+
+@functools.partial(jax.jit, static_argnames=("n_samples",))
+def _valid_samples_per_ray(rays_o: Array, rays_d: Array, geometry: render.Geometry, key: Array,
+                           n_samples: int) -> Array:  # fmt: skip
+    """``[R]`` int32: training samples of each ray inside the aabb and the alpha mask (density count)."""
+    t, _, _ = render.sample_along_rays(rays_o, rays_d, geometry, key, n_samples)
+    xyz = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]
+    valid = render.inside_box(xyz, geometry.aabb) & render.alpha_mask_lookup(geometry, xyz)
+    return jnp.sum(valid, axis=-1, dtype=jnp.int32)
+
+
+def estimate_density_count(rays: RaySet, geometry: render.Geometry, batch: int, seed: int, salt: int,
+                           probe: int = 8192) -> float:  # fmt: skip
+    """A high quantile (mean + 4 sd) of a batch's density count, from ``probe`` random rays.
+
+    The count depends on the geometry and the rays only, not on the field, so this predicts the
+    density budget of a phase before its first step.
+    """
+    rng = np.random.default_rng([seed, 0xB0D6, salt])
+    idx = rng.choice(len(rays), size=min(probe, len(rays)), replace=False)
+    key = jax.random.fold_in(jax.random.key(seed), salt)
+    counts = np.asarray(
+        _valid_samples_per_ray(
+            jnp.asarray(rays.origins[idx]),
+            jnp.asarray(rays.directions[idx]),
+            geometry,
+            key,
+            n_samples=geometry.n_samples,
+        ),
+        np.float64,
+    )
+    return batch * counts.mean() + 4.0 * np.sqrt(batch) * counts.std() + 1.0
+
+
+# --------------------------------------------------------------------------------------------------
+# Rays and the sampler
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class RaySet:
+    """Training rays on the host: ``origins``, ``directions``, ``rgb`` ``[N, 3]`` float32."""
+
+    origins: np.ndarray
+    directions: np.ndarray
+    rgb: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.origins.shape[0])
+
+    def select(self, keep: np.ndarray) -> RaySet:
+        """The rays where ``keep [N]`` is True."""
+        return RaySet(self.origins[keep], self.directions[keep], self.rgb[keep])
+
+
+class PermutationSampler:
+    """TensoRF's SimpleSampler made a function of the step: a fresh permutation every epoch.
+
+    Batch ``j`` of epoch ``e`` (``floor(N / B)`` batches per epoch; the tail of a permutation is
+    unused, as TensoRF) is ``perm(seed, start, e)[j B : (j + 1) B]``.
+    """
+
+    def __init__(self, seed: int, n_rays: int, batch: int, start: int):
+        if n_rays < 1:
+            raise MnerfError("no training rays left (every ray misses the scene box)")
+        self.seed, self.n_rays, self.start = int(seed), int(n_rays), int(start)
+        self.batch = min(int(batch), self.n_rays)
+        self.per_epoch = max(self.n_rays // self.batch, 1)
+        self._cached: tuple[int, np.ndarray] | None = None
+
+    def indices(self, step: int) -> np.ndarray:
+        """``[B]`` int64 ray indices of step ``step``."""
+        local = step - self.start
+        epoch, j = divmod(local, self.per_epoch)
+        if self._cached is None or self._cached[0] != epoch:
+            rng = np.random.default_rng([self.seed, 0x5A4D, self.start, epoch])
+            self._cached = (epoch, rng.permutation(self.n_rays))
+        return self._cached[1][j * self.batch : (j + 1) * self.batch]
+
+
+def training_rays(scene: Scene, geometry: render.Geometry) -> RaySet:
+    """All rays of the train split; for non-NDC scenes those missing the aabb are dropped."""
+    origins, directions, rgb = all_rays("train", scene)
+    if not scene.ndc:
+        keep = render.filter_rays(geometry, origins, directions, chunk=1 << 20, bbox_only=True)
+        if not keep.all():
+            origins, directions, rgb = origins[keep], directions[keep], rgb[keep]
+    return RaySet(np.ascontiguousarray(origins), np.ascontiguousarray(directions), np.ascontiguousarray(rgb))
+
+
+# --------------------------------------------------------------------------------------------------
+# Building states
+# --------------------------------------------------------------------------------------------------
+
+
+def geometry_for(
+    config: Config,
+    scene_aabb: np.ndarray,
+    resolution: tuple[int, int, int],
+    *,
+    near: float,
+    far: float,
+    ndc: bool,
+    white_bg: bool,
+) -> render.Geometry:
+    """A fresh geometry (no alpha mask) for ``resolution`` nodes over ``scene_aabb``."""
+    return render.make_geometry(
+        scene_aabb, resolution, step_ratio=config.render.step_ratio, near=near, far=far,
+        distance_scale=config.model.distance_scale, ndc=ndc, white_bg=white_bg,
+        max_samples=config.render.max_samples,
+    )  # fmt: skip
+
+
+def init_state(config: Config, scene: Scene) -> TrainState:
+    """Step-0 state: a fresh field at ``n_voxel_init`` over the scene's aabb, fresh Adam."""
+    aabb = np.asarray(scene.aabb, np.float32)
+    resolution = grids.resolution_from_voxels(aabb, config.train.n_voxel_init)
+    key = jax.random.key(config.train.seed)
+    params = field.init_field(jax.random.fold_in(key, 0x1417), config.model, resolution)
+    geometry = geometry_for(config, aabb, resolution, near=scene.near, far=scene.far, ndc=scene.ndc,
+                            white_bg=scene.white_bg)  # fmt: skip
+    hyper = StepHyper.from_config(config)
+    return TrainState(
+        params=params,
+        opt_state=make_optimizer(hyper).init(params),
+        step=jnp.zeros((), jnp.int32),
+        lr_base_step=jnp.zeros((), jnp.int32),
+        key=jax.random.fold_in(key, 0x7EA1),
+        geometry=geometry,
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Events: alpha mask (+ shrink, + ray filter) and upsampling
+# --------------------------------------------------------------------------------------------------
+
+
+def update_alpha_mask(
+    config: Config,
+    state: TrainState,
+    fns: render.FieldFns,
+    mask_resolution: tuple[int, int, int],
+    shrink: bool,
+) -> TrainState:
+    """New alpha mask at ``mask_resolution`` over the current aabb; with ``shrink`` crop to its box.
+
+    Shrinking crops the factors and Adam's moments alike (the optimiser continues; TensoRF only
+    shrinks where it also upsamples, which resets Adam anyway). An all-empty mask is not applied.
+    """
+    geometry = state.geometry
+    mask = render.compute_alpha_mask(fns, state.params, geometry, mask_resolution,
+                                     threshold=config.render.alpha_mask_threshold)  # fmt: skip
+    if not mask.any():
+        # Nothing is dense enough yet: an empty mask would leave no sample to train on.
+        return state
+    old_aabb = np.asarray(geometry.aabb)
+    params, opt_state = state.params, state.opt_state
+    if shrink:
+        new_box = render.shrink_box_from_mask(mask, old_aabb)
+        params, aligned = render.shrink_field(params, old_aabb, new_box)
+        opt_state, _ = render.shrink_field(opt_state, old_aabb, new_box)
+        geometry = geometry_for(config, aligned, grids.vm_resolution(params["density"]),
+                                near=float(geometry.near), far=float(geometry.far), ndc=geometry.ndc,
+                                white_bg=geometry.white_bg)  # fmt: skip
+    geometry = render.with_alpha_mask(geometry, mask, old_aabb)
+    return state.replace(params=params, opt_state=opt_state, geometry=geometry)
+
+
+def upsample(config: Config, state: TrainState, n_voxels: int) -> TrainState:
+    """Resize the factors to ``n_voxels`` over the current aabb; fresh Adam, learning rates reset."""
+    geometry = state.geometry
+    resolution = grids.resolution_from_voxels(np.asarray(geometry.aabb), n_voxels)
+    params = dict(state.params)
+    for name in GRID_GROUPS:
+        params[name] = grids.upsample_vm(params[name], resolution)
+    fresh = geometry_for(config, np.asarray(geometry.aabb), resolution, near=float(geometry.near),
+                         far=float(geometry.far), ndc=geometry.ndc, white_bg=geometry.white_bg)  # fmt: skip
+    fresh = fresh.replace(alpha_mask=geometry.alpha_mask, alpha_cells=geometry.alpha_cells,
+                          mask_aabb=geometry.mask_aabb)  # fmt: skip
+    hyper = StepHyper.from_config(config)
+    return state.replace(
+        params=params,
+        opt_state=make_optimizer(hyper).init(params),
+        lr_base_step=state.step,
+        geometry=fresh,
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Checkpoint layout
+# --------------------------------------------------------------------------------------------------
+
+
+def _checkpoint_tree(state: TrainState, ray_keep: np.ndarray | None) -> dict[str, Any]:
+    g = state.geometry
+    return {
+        "params": state.params,
+        "opt_state": state.opt_state,
+        "step": state.step,
+        "lr_base_step": state.lr_base_step,
+        "key": jax.random.key_data(state.key),
+        "geometry": {
+            "aabb": g.aabb,
+            "alpha_mask": g.alpha_mask,
+            "mask_aabb": g.mask_aabb,
+            "step_size": g.step_size,
+            "near": g.near,
+            "far": g.far,
+            "distance_scale": g.distance_scale,
+        },  # fmt: skip
+        # Packed keep-bits of the ray filter (training rays after the bbox drop); a placeholder byte
+        # before it (orbax cannot store empty arrays).
+        "ray_keep": np.packbits(ray_keep) if ray_keep is not None else np.zeros((1,), np.uint8),
+    }
+
+
+def _geometry_meta(g: render.Geometry) -> dict[str, Any]:
+    return {"n_samples": g.n_samples, "ndc": g.ndc, "white_bg": g.white_bg}
+
+
+def state_target(config: Config, meta: Mapping[str, Any]) -> dict[str, Any]:
+    """The checkpoint tree structure (shapes do not matter) for restoring a TensoRF state."""
+    resolution = tuple(meta["resolution"])
+    params = jax.eval_shape(lambda: field.init_field(jax.random.key(0), config.model, resolution))
+    opt_state = jax.eval_shape(make_optimizer(StepHyper.from_config(config)).init, params)
+    scalar = jax.ShapeDtypeStruct((), jnp.float32)
+    return {
+        "params": params,
+        "opt_state": opt_state,
+        "step": jax.ShapeDtypeStruct((), jnp.int32),
+        "lr_base_step": jax.ShapeDtypeStruct((), jnp.int32),
+        "key": jax.ShapeDtypeStruct((2,), jnp.uint32),
+        "geometry": {
+            "aabb": scalar,
+            "alpha_mask": scalar,
+            "mask_aabb": scalar,
+            "step_size": scalar,
+            "near": scalar,
+            "far": scalar,
+            "distance_scale": scalar,
+        },  # fmt: skip
+        "ray_keep": jax.ShapeDtypeStruct((1,), jnp.uint8),
+    }
+
+
+def state_from_checkpoint(
+    tree: Mapping[str, Any], meta: Mapping[str, Any]
+) -> tuple[TrainState, np.ndarray | None]:
+    """``(TrainState, ray keep-mask or None)`` from a restored checkpoint tree and its meta."""
+    g = tree["geometry"]
+    gm = meta["geometry"]
+    alpha_mask = np.asarray(g["alpha_mask"], bool)
+    f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
+    geometry = render.Geometry(
+        aabb=f32(g["aabb"]), alpha_mask=jnp.asarray(alpha_mask),
+        alpha_cells=jnp.asarray(render.mask_cells(alpha_mask)), mask_aabb=f32(g["mask_aabb"]),
+        step_size=f32(g["step_size"]), near=f32(g["near"]), far=f32(g["far"]),
+        distance_scale=f32(g["distance_scale"]), n_samples=int(gm["n_samples"]), ndc=bool(gm["ndc"]),
+        white_bg=bool(gm["white_bg"]),
+    )  # fmt: skip
+    as_jnp = functools.partial(jax.tree.map, jnp.asarray)
+    state = TrainState(
+        params=as_jnp(tree["params"]),
+        opt_state=as_jnp(tree["opt_state"]),
+        step=jnp.asarray(tree["step"], jnp.int32),
+        lr_base_step=jnp.asarray(tree["lr_base_step"], jnp.int32),
+        key=jax.random.wrap_key_data(jnp.asarray(tree["key"], jnp.uint32)),
+        geometry=geometry,
+    )
+    keep = None
+    if meta.get("ray_keep_count") is not None:
+        n = int(meta["ray_keep_total"])
+        keep = np.unpackbits(np.asarray(tree["ray_keep"], np.uint8), count=n).astype(bool)
+    return state, keep
+
+
+# --------------------------------------------------------------------------------------------------
+# The fit loop
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class FitResult:
+    """What ``fit`` returns: the final state and the run's timing."""
+
+    state: TrainState
+    fns: render.FieldFns
+    steps: int
+    train_seconds: float
+    rays: int  # rays processed by applied steps
+    compiles: int
+    redone_steps: int
+    last_metrics: dict[str, float]
+    total_train_seconds: float = 0.0  # including earlier sessions of a resumed run
+    compile_seconds: float = 0.0  # spent tracing and compiling train steps (within train_seconds)
+
+    @property
+    def rays_per_second(self) -> float:
+        return self.rays / self.train_seconds if self.train_seconds > 0 else 0.0
+
+
+LogFn = Callable[[int, dict[str, float]], None]
+
+
+class _Trainer:
+    """Host-side loop state: rays, sampler, budgets, event bookkeeping."""
+
+    def __init__(
+        self,
+        config: Config,
+        scene: Scene,
+        state: TrainState,
+        rays: RaySet,
+        fns: render.FieldFns,
+        *,
+        budgets: SampleBudgets | None = None,
+        mask_resolution: tuple[int, int, int] | None = None,
+        ray_keep: np.ndarray | None = None,
+        phase_start: int = 0,
+    ):
+        self.config = config
+        self.scene = scene
+        self.state = state
+        self.fns = fns
+        self.hyper = StepHyper.from_config(config)
+        self.base_rays = rays
+        self.ray_keep = None
+        self.use_rays(rays, 0)
+        if ray_keep is not None:
+            if ray_keep.size != len(rays):
+                raise MnerfError(
+                    f"the checkpoint was trained on {ray_keep.size} rays, the data gives "
+                    f"{len(rays)}: is --data the same scene?"
+                )
+            self.ray_keep = ray_keep
+            self.use_rays(rays.select(ray_keep), _filter_start(config))
+        self.mask_resolution = mask_resolution or state.resolution
+        self.phase_start = phase_start
+        self.phase_end = _next_event(config, phase_start)
+        self.budgets = budgets if budgets is not None else SampleBudgets(density=0, colour=0)
+        if budgets is None:
+            self.start_phase()
+        self.shapes_seen: set[tuple] = set()
+        self.compile_seconds = 0.0
+        self.redone = 0
+        self.rays_done = 0
+        self.prior_seconds = 0.0  # training time of earlier sessions (resumed runs)
+        self.session_start = time.perf_counter()
+
+    def use_rays(self, rays: RaySet, start: int) -> None:
+        self.rays = rays
+        self.batch = min(self.config.train.batch_size, len(rays))
+        self.sampler = PermutationSampler(self.config.train.seed, len(rays), self.batch, start)
+
+    @property
+    def cap(self) -> int:
+        return self.batch * self.state.geometry.n_samples
+
+    # -- steps ----------------------------------------------------------------------------------
+
+    def dispatch(self, state: TrainState, step: int) -> tuple[TrainState, dict[str, Array]]:
+        idx = self.sampler.indices(step)
+        budgets = self.budgets.for_step(step)
+        shapes = (state.resolution, state.geometry.n_samples, *budgets)
+        t0 = time.perf_counter()
+        new_state, out = train_step(
+            state, self.rays.origins[idx], self.rays.directions[idx], self.rays.rgb[idx],
+            fns=self.fns, hyper=self.hyper, density_budget=budgets[0], colour_budget=budgets[1],
+        )  # fmt: skip
+        if shapes not in self.shapes_seen:
+            # Tracing and compiling happen in this call; execution is asynchronous.
+            self.shapes_seen.add(shapes)
+            self.compile_seconds += time.perf_counter() - t0
+        return new_state, out
+
+    def run_segment(self, stop: int, on_step: LogFn) -> None:
+        """Steps from ``state.step`` to ``stop`` (no events in between), pipelined one step deep.
+
+        Step k+1 is dispatched before step k's counts are read, so the read does not stall XLA. If
+        step k overflowed a budget, both results are dropped and step k is redone from the state
+        before it with grown budgets.
+        """
+        state = self.state
+        k = int(state.step)
+        pending = None  # (step, state before, state after, metrics)
+        while k < stop or pending is not None:
+            nxt = self.dispatch(state, k) if k < stop else None
+            if pending is not None:
+                pk, before, after, out = pending
+                host = jax.device_get(out)
+                n_samples = self.state.geometry.n_samples
+                if self.budgets.observe(pk, int(host["density_count"]), int(host["colour_count"]), n_samples,
+                                        self.cap):  # fmt: skip
+                    self.redone += 1
+                    state, k, pending = before, pk, None
+                    continue
+                self.rays_done += self.batch
+                self.state = after
+                pending = None
+                if _refit_due(pk + 1, self.phase_start):
+                    self.budgets.schedule_refit(pk + 2, self.cap, self.phase_end - (pk + 2))
+                on_step(pk, {name: float(v) for name, v in host.items()})
+            if nxt is not None:
+                pending = (k, state, nxt[0], nxt[1])
+                state, k = nxt[0], k + 1
+        self.state = state
+
+    # -- events ---------------------------------------------------------------------------------
+
+    def apply_events(self, done_step: int) -> bool:
+        """Events due after step ``done_step`` (0-based, just completed). True if any ran."""
+        masks = sorted(self.config.train.alpha_mask_steps)
+        upsamples = voxel_steps(self.config)
+        ran = False
+        if done_step in masks:
+            shrink = done_step == masks[0]
+            self.state = update_alpha_mask(self.config, self.state, self.fns, self.mask_resolution, shrink)
+            if len(masks) > 1 and done_step == masks[1] and not self.scene.ndc:
+                self.filter_rays(done_step + 1)
+            ran = True
+        if done_step in upsamples:
+            self.state = upsample(self.config, self.state, upsamples[done_step])
+            if math.prod(self.state.resolution) < 256**3:
+                self.mask_resolution = self.state.resolution
+            ran = True
+        if ran:
+            self.phase_start = done_step + 1
+            self.phase_end = _next_event(self.config, self.phase_start)
+            self.start_phase()
+        return ran
+
+    def start_phase(self) -> None:
+        """Budgets for the phase beginning now: density predicted, colour scaled from the last step."""
+        g = self.state.geometry
+        density = estimate_density_count(self.rays, g, self.batch, self.config.train.seed, self.phase_start)
+        colour = self.budgets.colour_estimate(g.n_samples)
+        # Before any colour count is known (the first phase), colour may need every density sample.
+        self.budgets.start_phase(density, density if colour is None else min(colour, density), self.cap)
+
+    def filter_rays(self, start: int) -> None:
+        """Keep the training rays that cross an occupied alpha-mask cell (TensoRF's filtering_rays)."""
+        g = self.state.geometry
+        keep = render.filter_rays(g, self.base_rays.origins, self.base_rays.directions, chunk=1 << 16,
+                                  n_samples=min(256, g.n_samples))  # fmt: skip
+        if not keep.any():
+            keep[:] = True  # nothing occupied: keep training on every ray
+        self.ray_keep = keep
+        self.use_rays(self.base_rays.select(keep), start)
+
+    # -- checkpoints ----------------------------------------------------------------------------
+
+    def checkpoint_meta(self) -> dict[str, Any]:
+        return {
+            "kind": "tensorf",
+            "version": STATE_VERSION,
+            "step": int(self.state.step),
+            "fingerprint": config_fingerprint(self.config),
+            "config": self.config.to_dict(),
+            "resolution": list(self.state.resolution),
+            "mask_resolution": list(self.mask_resolution),
+            "geometry": _geometry_meta(self.state.geometry),
+            "budgets": self.budgets.to_dict(),
+            "phase_start": self.phase_start,
+            "ray_keep_count": None if self.ray_keep is None else int(self.ray_keep.sum()),
+            "ray_keep_total": None if self.ray_keep is None else int(self.ray_keep.size),
+            "n_train_rays": len(self.base_rays),
+            "train_seconds": self.prior_seconds + time.perf_counter() - self.session_start,
+        }
+
+    def save(self, store: CheckpointStore) -> None:
+        store.save(int(self.state.step), _checkpoint_tree(self.state, self.ray_keep), self.checkpoint_meta())
+
+
+def restore_state(
+    config: Config, store: CheckpointStore, step: int | None = None
+) -> tuple[TrainState, dict[str, Any], np.ndarray | None]:
+    """``(state, meta, ray keep-mask)`` of a checkpoint, refused if written under another config."""
+    meta = store.read_meta(step)
+    if meta.get("kind", "tensorf") != "tensorf":
+        raise MnerfError(f"checkpoint in {store.directory} holds a {meta.get('kind')!r} model, not tensorf")
+    check_compatible(meta, config, store.directory.parent)
+    tree, meta = store.restore(state_target(config, meta), meta["step"])
+    state, keep = state_from_checkpoint(tree, meta)
+    return state, meta, keep
+
+
+def _next_event(config: Config, step: int) -> int:
+    """The first step count after ``step`` at which an event runs (``n_iters`` when none)."""
+    t = config.train
+    marks = [u + 1 for u in (*t.upsample_steps, *t.alpha_mask_steps) if u + 1 > step]
+    return min(marks, default=t.n_iters)
+
+
+def _filter_start(config: Config) -> int:
+    """The step from which training samples the alpha-filtered ray set."""
+    masks = sorted(config.train.alpha_mask_steps)
+    return masks[1] + 1 if len(masks) > 1 else 0
+
+
+def _boundaries(config: Config, start: int, stop: int) -> list[int]:
+    """Step counts at which the loop pauses: after events, at checkpoints, at ``stop``."""
+    t = config.train
+    marks = {u + 1 for u in (*t.upsample_steps, *t.alpha_mask_steps)}
+    every = max(t.checkpoint_every, 1)
+    marks |= set(range(every, stop, every))
+    marks.add(stop)
+    return sorted(m for m in marks if start < m <= stop)
+
+
+def fit(
+    config: Config,
+    scene: Scene,
+    run_dir: str | Path | None = None,
+    *,
+    resume: bool = False,
+    stop_at: int | None = None,
+    on_step: LogFn | None = None,
+    fns: render.FieldFns | None = None,
+) -> FitResult:
+    """Train a TensoRF field on ``scene``'s train split.
+
+    Args:
+      config: the run's config (``train`` schedule, ``model``, ``render``).
+      scene: a loaded scene with a ``train`` split.
+      run_dir: where checkpoints go (``run_dir/checkpoints``); None keeps nothing on disk.
+      resume: continue from the latest checkpoint in ``run_dir`` (refused if its config differs).
+      stop_at: stop after this many steps (default ``train.n_iters``); a checkpoint is written there.
+      on_step: called after every applied step with ``(step, {"loss", "mse", "psnr", ...})``.
+      fns: field functions (default: plain TensoRF of ``config.model``).
+
+    Returns:
+      FitResult with the final state; ``train_seconds`` is this call's loop (compilation included,
+      checkpoint writing in the background).
+    """
+    fns = fns or render.tensorf_field_fns(config.model)
+    stop = min(config.train.n_iters if stop_at is None else int(stop_at), config.train.n_iters)
+    store = CheckpointStore(run_dir, keep=config.train.keep_checkpoints) if run_dir is not None else None
+    try:
+        state = init_state(config, scene)
+        rays = training_rays(scene, state.geometry)
+        extra: dict[str, Any] = {}
+        if resume and store is not None and store.latest_step() is not None:
+            state, meta, keep = restore_state(config, store)
+            extra = {
+                "budgets": SampleBudgets(**{k: int(v) for k, v in meta["budgets"].items()}),
+                "mask_resolution": tuple(int(v) for v in meta["mask_resolution"]),
+                "ray_keep": keep,
+                "phase_start": int(meta["phase_start"]),
+            }
+            prior = float(meta.get("train_seconds", 0.0))
+        else:
+            prior = 0.0
+        trainer = _Trainer(config, scene, state, rays, fns, **extra)
+        trainer.prior_seconds = prior
+        start = int(trainer.state.step)
+        last: dict[str, float] = {}
+
+        def record(step: int, metrics: dict[str, float]) -> None:
+            last.clear()
+            last.update(metrics)
+            if on_step is not None:
+                on_step(step, metrics)
+
+        t0 = trainer.session_start = time.perf_counter()
+        for mark in _boundaries(config, start, stop):
+            trainer.run_segment(mark, record)
+            trainer.apply_events(mark - 1)
+            if store is not None and (mark % max(config.train.checkpoint_every, 1) == 0 or mark == stop):
+                trainer.save(store)
+        jax.block_until_ready(trainer.state.params)
+        seconds = time.perf_counter() - t0
+        if store is not None:
+            store.wait()
+        return FitResult(
+            state=trainer.state, fns=fns, steps=int(trainer.state.step), train_seconds=seconds,
+            rays=trainer.rays_done, compiles=len(trainer.shapes_seen), redone_steps=trainer.redone,
+            last_metrics=last, total_train_seconds=prior + seconds, compile_seconds=trainer.compile_seconds,
+        )  # fmt: skip
+    finally:
+        if store is not None:
+            store.close()

@@ -1,0 +1,137 @@
+"""Training and rendering throughput of the TensoRF loop on a real scene.
+
+Default protocol: NeRF-Synthetic lego at full resolution (800x800), grid 128^3 with no upsampling and
+no alpha mask, batch 4096, 300 steps from initialisation; then test view r_0 rendered at stride 4
+(200x200 = 40k rays). Prints training rays/s, rendering rays/s, compile seconds, peak RSS and the
+training PSNR at the end (``--json``: one JSON line).
+
+    python scripts/bench_fit.py [--data ../shared/data/nerf_synthetic/lego] [--steps 300]
+                                [--batch 4096] [--downscale 1] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from mnerf_jax.commands.fit import tune_host_allocator  # noqa: E402
+
+ALLOCATOR_TUNED = tune_host_allocator()  # before JAX allocates anything
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+from mnerf_jax import render, train  # noqa: E402
+from mnerf_jax.config import load_config  # noqa: E402
+from mnerf_jax.data import camera_rays, load_scene  # noqa: E402
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--data", type=Path, default=ROOT.parent / "shared" / "data" / "nerf_synthetic" / "lego"
+    )
+    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--batch", type=int, default=4096)
+    parser.add_argument("--downscale", type=float, default=1.0, help="image side divided by this")
+    parser.add_argument("--grid", type=int, default=128, help="grid side (voxels = grid^3)")
+    parser.add_argument(
+        "--render-stride", type=int, default=4, help="render r_0 at every n-th pixel per axis"
+    )
+    parser.add_argument("--json", action="store_true", help="print one JSON line")
+    return parser.parse_args(argv)
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    n = args.grid**3
+    overrides = [
+        f"data.downscale={args.downscale}",
+        f"train.batch_size={args.batch}",
+        f"train.n_iters={args.steps}",
+        f"train.n_voxel_init={n}",
+        f"train.n_voxel_final={n}",
+        "train.upsample_steps=",
+        "train.alpha_mask_steps=",
+        f"train.checkpoint_every={args.steps + 1}",
+    ]
+    config = load_config("blender", overrides)
+    t0 = time.perf_counter()
+    scene = load_scene(args.data, config.data, config.render, ("train", "test"))
+    load_s = time.perf_counter() - t0
+
+    step_times: list[float] = []
+    last = [time.perf_counter()]
+
+    def on_step(step: int, metrics: dict[str, float]) -> None:
+        now = time.perf_counter()
+        step_times.append(now - last[0])
+        last[0] = now
+
+    result = train.fit(config, scene, None, on_step=on_step)
+    train_s = result.train_seconds
+    rays = result.rays
+
+    # Rendering: r_0 at stride s, in evaluation mode (budgets settle on the first chunks).
+    test = scene.split("test")
+    index = test.names.index("r_0") if "r_0" in test.names else 0
+    o, d = camera_rays(test.cameras, index)
+    h, w = test.cameras.height, test.cameras.width
+    s = args.render_stride
+    grid = np.arange(h * w).reshape(h, w)[::s, ::s]
+    o, d = o[grid.reshape(-1)], d[grid.reshape(-1)]
+    hh, ww = grid.shape
+    state = result.state
+    policy = render.BudgetPolicy(patience=2)
+    t0 = time.perf_counter()
+    render.render_image(
+        result.fns, state.params, None, o, d, state.geometry, hh, ww, chunk=8192, policy=policy
+    )
+    first_render_s = time.perf_counter() - t0  # includes compilation
+    t0 = time.perf_counter()
+    out = render.render_image(result.fns, state.params, None, o, d, state.geometry, hh, ww, chunk=8192,
+                              policy=policy)  # fmt: skip
+    render_s = time.perf_counter() - t0
+    jax.block_until_ready(out["rgb"])
+
+    summary = {
+        "train_rays_per_s": round(rays / train_s, 1),
+        "render_rays_per_s": round(hh * ww / render_s, 1),
+        "compile_s": round(result.compile_seconds, 2),
+        "render_compile_s": round(first_render_s - render_s, 2),
+        "peak_rss_mb": round(peak_rss_mb(), 1),
+        "train_psnr": round(result.last_metrics.get("psnr", float("nan")), 3),
+        "train_seconds": round(train_s, 2),
+        "train_rays_per_s_excluding_compile": round(rays / max(train_s - result.compile_seconds, 1e-9), 1),
+        "train_compiles": result.compiles,
+        "redone_steps": result.redone_steps,
+        "median_step_s": round(float(np.median(step_times)), 4) if step_times else None,
+        "load_seconds": round(load_s, 2),
+        "steps": result.steps,
+        "batch": args.batch,
+        "image": [w, h],
+        "render_rays": hh * ww,
+        "devices": [str(dv) for dv in jax.devices()],
+        "tuned_allocator": ALLOCATOR_TUNED,
+    }
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        for key, value in summary.items():
+            print(f"{key:>18}: {value}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

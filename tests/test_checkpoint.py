@@ -1,0 +1,74 @@
+"""Orbax checkpoint store: round trip, keep-last-k, config fingerprints and refusal of other configs."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from mnerf_jax import checkpoint
+from mnerf_jax.checkpoint import CheckpointError, CheckpointStore, check_compatible, config_fingerprint
+from mnerf_jax.config import load_config
+
+
+def _tree(scale: float, size: int = 4):
+    params = {"w": jnp.full((size, 3), scale, jnp.float32), "b": jnp.arange(3, dtype=jnp.float32)}
+    return {"params": params, "opt": optax.adam(1e-3).init(params), "step": jnp.int32(7),
+            "mask": np.ones((2, 2, 2), bool)}  # fmt: skip
+
+
+def test_fingerprint_ignores_bookkeeping_but_not_the_schedule():
+    base = load_config("procedural")
+    same = load_config(
+        "procedural", ["train.checkpoint_every=7", "train.log_every=3", "train.keep_checkpoints=5"]
+    )
+    assert config_fingerprint(base) == config_fingerprint(same)
+    for override in ("train.n_iters=999", "model.density_ranks=8,8,8", "render.step_ratio=0.25",
+                     "data.procedural_size=32"):  # fmt: skip
+        assert config_fingerprint(load_config("procedural", [override])) != config_fingerprint(base), override
+
+
+def test_round_trip_restores_structure_values_and_meta(tmp_path):
+    tree = _tree(2.0)
+    with CheckpointStore(tmp_path, keep=2) as store:
+        store.save(7, tree, {"step": 7, "resolution": [4, 4, 4]})
+        store.wait()
+        # Restoring takes the structure from the target; shapes come from the checkpoint.
+        restored, meta = store.restore(_tree(0.0, size=9))
+    assert meta == {"step": 7, "resolution": [4, 4, 4]}
+    np.testing.assert_array_equal(restored["params"]["w"], tree["params"]["w"])
+    assert isinstance(restored["opt"], type(tree["opt"]))
+    assert restored["mask"].dtype == bool and int(restored["step"]) == 7
+
+
+def test_keeps_only_the_last_checkpoints(tmp_path):
+    with CheckpointStore(tmp_path, keep=2) as store:
+        for step in (1, 2, 3):
+            store.save(step, _tree(float(step)), {"step": step})
+        store.wait()
+        assert store.all_steps() == [2, 3] and store.latest_step() == 3
+        restored, _ = store.restore(_tree(0.0), step=2)
+    assert float(restored["params"]["w"][0, 0]) == 2.0
+
+
+def test_incompatible_config_is_refused_with_the_difference(tmp_path):
+    config = load_config("procedural")
+    meta = {"fingerprint": config_fingerprint(config), "config": config.to_dict()}
+    check_compatible(meta, config, tmp_path)  # same config: accepted
+    other = load_config("procedural", ["train.n_iters=1234"])
+    with pytest.raises(CheckpointError, match=rf"train\.n_iters: {config.train.n_iters} -> 1234"):
+        check_compatible(meta, other, tmp_path)
+
+
+def test_missing_checkpoints_are_clear_errors(tmp_path):
+    with pytest.raises(CheckpointError, match="holds no checkpoints"):
+        CheckpointStore(tmp_path / "nothing", create=False)
+    with CheckpointStore(tmp_path) as store, pytest.raises(CheckpointError, match="no checkpoint"):
+        store.read_meta()
+
+
+def test_config_differences_lists_changed_fields():
+    old = {"train": {"n_iters": 1, "seed": 0}, "model": {"a": 1}}
+    new = {"train": {"n_iters": 2, "seed": 0}, "model": {"a": 1}}
+    assert checkpoint.config_differences(old, new) == ["train.n_iters: 1 -> 2"]

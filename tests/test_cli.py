@@ -1,0 +1,131 @@
+"""The fit / render / evaluate / demo commands on a tiny procedural run, and their refusals."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from mnerf_jax import cli
+
+# The schedule of tests/test_train.py (same static shapes: its compilations are reused here).
+TINY = [
+    "data.procedural_size=32", "data.procedural_views=8", "train.batch_size=512", "train.n_iters=60",
+    "train.n_voxel_init=4096", "train.n_voxel_final=13824", "train.upsample_steps=38",
+    "train.alpha_mask_steps=30,45", "render.alpha_mask_threshold=1e-3", "train.checkpoint_every=12",
+    "train.log_every=12",
+]  # fmt: skip
+
+
+def _sets(overrides: list[str]) -> list[str]:
+    return [arg for item in overrides for arg in ("--set", item)]
+
+
+def _snapshot(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _main(capsys, *argv: str) -> tuple[int, str, str]:
+    code = cli.main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory) -> Path:
+    """A fitted tiny procedural run (fit -> metrics.json, eval-test.json)."""
+    run = tmp_path_factory.mktemp("cli") / "run"
+    code = cli.main(["fit", "--out", str(run), *_sets(TINY), "--eval-views", "2", "--quiet"])
+    assert code == 0
+    return run
+
+
+def test_fit_writes_the_documented_files(tiny_run):
+    for name in ("run.json", "config.json", "metrics.json", "eval-test.json", "checkpoints", "tb"):
+        assert (tiny_run / name).exists(), name
+    marker = json.loads((tiny_run / "run.json").read_text())
+    assert marker["kind"] == "tensorf" and marker["version"] == 1 and marker["data"] is None
+    metrics = json.loads((tiny_run / "metrics.json").read_text())
+    assert metrics["steps"] == 60 and metrics["train_seconds"] > 0
+    assert {"psnr", "ssim", "lpips", "views"} <= set(metrics["test"]) and metrics["test"]["views"] == 2
+    assert any((tiny_run / "tb").iterdir())
+
+
+def test_render_test_split_and_path(tiny_run, tmp_path, capsys):
+    code, out, _ = _main(capsys, "render", "--run", tiny_run, "--split", "test", "--out", tmp_path / "t",
+                         "--views", "2", "--quiet")  # fmt: skip
+    assert code == 0 and sorted(p.name for p in (tmp_path / "t").iterdir()) == ["r_0.png", "r_3.png"]
+    code, _, _ = _main(capsys, "render", "--run", tiny_run, "--split", "path", "--out", tmp_path / "p",
+                       "--frames", "3", "--quiet")  # fmt: skip
+    assert code == 0 and (tmp_path / "p" / "path.gif").stat().st_size > 0
+    assert len(list((tmp_path / "p").glob("frame_*.png"))) == 3
+    # Rendering again over the same files is refused unless asked for.
+    before = _snapshot(tmp_path / "t")
+    code, _, err = _main(capsys, "render", "--run", tiny_run, "--split", "test", "--out", tmp_path / "t",
+                         "--views", "2", "--quiet")  # fmt: skip
+    assert code == 2 and "--overwrite" in err and _snapshot(tmp_path / "t") == before
+
+
+def test_evaluate_writes_and_prints_metrics(tiny_run, capsys):
+    code, out, _ = _main(capsys, "evaluate", "--run", tiny_run, "--views", "2", "--quiet")
+    assert code == 0
+    printed = json.loads(out.strip().splitlines()[-1])
+    saved = json.loads((tiny_run / "eval-test.json").read_text())
+    for result in (printed, saved):
+        assert {"psnr", "ssim", "lpips", "views", "split"} <= set(result) and result["views"] == 2
+    assert saved["psnr"] == pytest.approx(printed["psnr"])
+
+
+def test_fit_into_another_runs_directory_is_refused_and_changes_nothing(tiny_run, capsys):
+    before = _snapshot(tiny_run)
+    code, _, err = _main(capsys, "fit", "--out", tiny_run, *_sets([*TINY, "train.n_iters=61"]), "--quiet")
+    assert code == 2 and "holds another run" in err and "train.n_iters: 60 -> 61" in err
+    code, _, err = _main(capsys, "fit", "--out", tiny_run, *_sets(TINY), "--quiet")
+    assert code == 2 and "pass --resume" in err
+    assert _snapshot(tiny_run) == before
+
+
+def test_fit_into_a_non_run_directory_is_refused(tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("keep me")
+    code, _, err = _main(capsys, "fit", "--out", tmp_path, *_sets(TINY), "--quiet")
+    assert code == 2 and "holds no mnerf run" in err
+    assert _snapshot(tmp_path) == {"notes.txt": b"keep me"}
+
+
+def test_unknown_set_key_is_one_clear_line(tmp_path, capsys):
+    code, _, err = _main(capsys, "fit", "--out", tmp_path / "x", "--set", "train.n_iterz=5")
+    assert code == 2 and err.strip().count("\n") == 0 and "unknown config key config.train.n_iterz" in err
+    assert not (tmp_path / "x").exists()
+
+
+def test_missing_data_and_missing_checkpoint_are_clear_errors(tmp_path, capsys):
+    code, _, err = _main(
+        capsys, "fit", "--config", "quick", "--data", tmp_path / "nope", "--out", tmp_path / "r"
+    )
+    assert code == 2 and "no such scene directory" in err and not (tmp_path / "r").exists()
+    # A run directory whose fit never reached a checkpoint.
+    from mnerf_jax import run as runs
+    from mnerf_jax.config import load_config
+
+    runs.write_run_files(tmp_path / "empty", load_config("procedural", TINY), data=None)
+    for command in ("render", "evaluate"):
+        extra = ["--out", str(tmp_path / "o")] if command == "render" else []
+        code, _, err = _main(capsys, command, "--run", tmp_path / "empty", *extra)
+        assert code == 2 and "no checkpoint" in err, command
+    code, _, err = _main(capsys, "evaluate", "--run", tmp_path / "missing")
+    assert code == 2 and "no such directory" in err
+
+
+def test_demo_runs_its_steps_into_a_folder(tmp_path, capsys):
+    out = tmp_path / "demo"
+    code, stdout, _ = _main(capsys, "demo", "--out", out, *_sets(TINY), "--frames", "2", "--quiet")
+    assert code == 0
+    assert (out / "run" / "eval-test.json").is_file() and (out / "orbit" / "path.gif").is_file()
+    assert len(list((out / "test").glob("*.png"))) == 4
+    assert "test PSNR" in stdout
+    # A folder that is neither empty nor a demo's is refused.
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "x").write_text("x")
+    code, _, err = _main(capsys, "demo", "--out", tmp_path / "other", *_sets(TINY), "--quiet")
+    assert code == 2 and "not a demo folder" in err

@@ -1,0 +1,261 @@
+"""HiDDeN decoder: shapes, whitening, weights I/O, shipped decoders, and a short training run."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mnerf_jax import decoder as dec
+from mnerf_jax import decoder_train, dwt
+from mnerf_jax.errors import MnerfError
+
+# Acceptance floors of the shipped decoders: no-attack bit accuracy on held-out encoded images.
+SHIPPED_FLOOR = {16: 0.97, 48: 0.95}
+
+
+@pytest.fixture(scope="module")
+def small_decoder() -> dict:
+    """A 16-bit decoder with non-trivial BatchNorm statistics (as after training)."""
+    variables = dec.init_decoder(jax.random.PRNGKey(0), 16)
+
+    @jax.jit
+    def perturb(stats: dict) -> dict:
+        leaves, tree = jax.tree.flatten(stats)
+        keys = jax.random.split(jax.random.PRNGKey(1), len(leaves))
+        return jax.tree.unflatten(
+            tree, [a + 0.2 * jax.random.uniform(k, a.shape) for a, k in zip(leaves, keys, strict=True)]
+        )
+
+    return {"params": variables["params"], "batch_stats": perturb(variables["batch_stats"])}
+
+
+@pytest.mark.parametrize("bits", [8, 16, 32, 48])
+def test_shapes(bits: int) -> None:
+    # Shapes only (no compilation): the architecture for every supported message length.
+    variables = jax.eval_shape(lambda: dec.init_decoder(jax.random.PRNGKey(bits), bits))
+    assert dec.architecture(variables) == (bits, 64, 8)
+    params = variables["params"]
+    assert params["block_0"]["conv"]["kernel"].shape == (3, 3, 3, 64)
+    assert all(params[f"block_{i}"]["conv"]["kernel"].shape == (3, 3, 64, 64) for i in range(1, 8))
+    assert params["block_8"]["conv"]["kernel"].shape == (3, 3, 64, bits)
+    assert params["linear"]["kernel"].shape == params["whiten"]["kernel"].shape == (bits, bits)
+    assert variables["batch_stats"]["block_3"]["bn"]["var"].shape == (64,)
+    ll2 = jax.ShapeDtypeStruct((2, 9, 7, 3), jnp.float32)
+    assert jax.eval_shape(dec.apply_ll2, variables, ll2).shape == (2, bits)
+    logits, stats = jax.eval_shape(dec.apply_ll2_train, variables, ll2)
+    assert logits.shape == (2, bits)
+    assert jax.tree.structure(stats) == jax.tree.structure(variables["batch_stats"])
+    images = jax.ShapeDtypeStruct((3, 100, 100, 3), jnp.float32)  # LL2 25×25, as a 100² render
+    assert jax.eval_shape(dec.decode_logits, variables, images).shape == (3, bits)
+
+
+def test_forward_values(small_decoder: dict) -> None:
+    fresh = dec.init_decoder(jax.random.PRNGKey(0), 16)
+    np.testing.assert_array_equal(fresh["params"]["whiten"]["kernel"], np.eye(16))  # identity at init
+    images = jax.random.uniform(jax.random.PRNGKey(2), (2, 36, 28, 3))
+    ll2 = dwt.ll2(images)
+    assert ll2.shape == (2, 9, 7, 3)
+    logits = dec.decode_logits(small_decoder, images)  # takes the LL2 itself
+    np.testing.assert_allclose(logits, dec.apply_ll2(small_decoder, ll2), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(dec.apply_ll2(fresh, ll2), dec.apply_ll2(fresh, ll2, whiten=False), atol=1e-6)
+    # Eval mode uses the running statistics: changing them changes the output; train mode ignores them.
+    shifted = {
+        "params": small_decoder["params"],
+        "batch_stats": jax.tree.map(lambda a: a + 1.0, small_decoder["batch_stats"]),
+    }
+    assert not np.allclose(dec.apply_ll2(shifted, ll2), dec.apply_ll2(small_decoder, ll2))
+    np.testing.assert_allclose(
+        dec.apply_ll2_train(shifted, ll2)[0], dec.apply_ll2_train(small_decoder, ll2)[0], rtol=1e-5, atol=1e-5
+    )
+
+
+def test_unsupported_bits() -> None:
+    with pytest.raises(MnerfError, match="unsupported message length 12"):
+        dec.init_decoder(jax.random.PRNGKey(0), 12)
+
+
+def test_whitening_gives_identity_covariance(small_decoder: dict) -> None:
+    images = jax.random.uniform(jax.random.PRNGKey(3), (160, 24, 24, 3))
+    # Some structure so that the raw outputs are correlated, as on real images.
+    images = images * jnp.linspace(0.2, 1.0, 160)[:, None, None, None]
+    batches = [dwt.ll2(images[i : i + 40]) for i in range(0, 160, 40)]
+    raw = np.concatenate([np.asarray(dec.apply_ll2(small_decoder, b, whiten=False)) for b in batches])
+    raw_cov = np.cov(raw, rowvar=False, bias=True)
+    assert np.abs(raw_cov - np.eye(16)).max() > 0.1  # not white to begin with
+
+    whitened = dec.fit_whitening(small_decoder, batches)
+    out = np.concatenate([np.asarray(dec.apply_ll2(whitened, b), np.float64) for b in batches])
+    # float32 layer: the raw outputs have a large mean relative to their spread, so allow rounding.
+    np.testing.assert_allclose(out.mean(axis=0), 0.0, atol=1e-2)
+    np.testing.assert_allclose(np.cov(out, rowvar=False, bias=True), np.eye(16), atol=1e-2)
+    # The raw path is untouched by the whitening layer.
+    np.testing.assert_allclose(
+        dec.apply_ll2(whitened, batches[0], whiten=False), raw[:40], rtol=1e-5, atol=1e-5
+    )
+
+
+def test_whitening_formula_on_correlated_gaussians() -> None:
+    rng = np.random.default_rng(0)
+    mix = rng.normal(size=(8, 8))
+    x = rng.normal(size=(2000, 8)) @ mix.T + rng.normal(size=8)
+    w, b = dec.whitening_from_outputs(x)
+    y = x @ w.T + b
+    np.testing.assert_allclose(y.mean(axis=0), 0.0, atol=1e-10)
+    np.testing.assert_allclose(np.cov(y, rowvar=False, bias=True), np.eye(8), atol=1e-8)
+    with pytest.raises(MnerfError, match="more images than bits"):
+        dec.whitening_from_outputs(x[:5])
+
+
+def test_save_load_round_trip(tmp_path: Path, small_decoder: dict) -> None:
+    path = tmp_path / "d.npz"
+    meta = dec.save_decoder(path, small_decoder, {"training": {"note": "unit test"}}, wavelet="haar")
+    loaded = dec.load_decoder(path, expect_bits=16)
+    assert loaded.bits == 16 and loaded.wavelet == "haar" and loaded.fingerprint == meta["fingerprint"]
+    assert loaded.metadata["training"] == {"note": "unit test"}
+    assert dec.fingerprint(loaded.variables) == dec.fingerprint(small_decoder)
+    for a, b in zip(jax.tree.leaves(loaded.variables), jax.tree.leaves(small_decoder), strict=True):
+        np.testing.assert_array_equal(a, b)
+    with np.load(path, allow_pickle=False) as data:  # a plain npz: no pickled objects anywhere
+        assert all(data[name].dtype != object for name in data.files)
+
+
+def test_bad_decoder_files(tmp_path: Path, small_decoder: dict) -> None:
+    path = tmp_path / "d.npz"
+    dec.save_decoder(path, small_decoder)
+    with pytest.raises(MnerfError, match="decodes 16-bit messages, but 48 bits are expected"):
+        dec.load_decoder(path, expect_bits=48)
+    with pytest.raises(MnerfError, match="does not exist"):
+        dec.load_decoder(tmp_path / "absent.npz")
+
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(MnerfError, match="corrupt or truncated"):
+        dec.load_decoder(truncated)
+
+    # Weights changed after saving: the fingerprint no longer matches.
+    tampered = tmp_path / "tampered.npz"
+    with np.load(path, allow_pickle=False) as data:
+        arrays = {name: np.array(data[name]) for name in data.files}
+    arrays["params/block_4/conv/kernel"][0, 0, 0, 0] += 1.0
+    np.savez(tampered, **arrays)
+    with pytest.raises(MnerfError, match="fingerprint"):
+        dec.load_decoder(tampered)
+
+    # Metadata that claims 16 bits over the arrays of an 8-bit decoder: wrong shapes.
+    eight = dec.init_decoder(jax.random.PRNGKey(5), 8)
+    dec.save_decoder(tmp_path / "eight.npz", eight)
+    with np.load(tmp_path / "eight.npz", allow_pickle=False) as data:
+        arrays = {name: np.array(data[name]) for name in data.files}
+    meta = json.loads(arrays["__metadata__"].tobytes())
+    meta["bits"] = 16
+    arrays["__metadata__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(tmp_path / "lying.npz", **arrays)
+    with pytest.raises(MnerfError, match=r"has shape \(8,\), expected \(16,\)"):
+        dec.load_decoder(tmp_path / "lying.npz")
+
+    # A zip that is not a decoder file at all.
+    with zipfile.ZipFile(tmp_path / "other.npz", "w") as z:
+        z.writestr("x.npy", b"garbage")
+    with pytest.raises(MnerfError, match="decoder file"):
+        dec.load_decoder(tmp_path / "other.npz")
+
+
+@pytest.mark.parametrize("bits", dec.SHIPPED_BITS)
+def test_shipped_decoder_reproduces_recorded_accuracy(bits: int) -> None:
+    if not dec.shipped_check_path(bits).is_file():
+        pytest.skip(f"no shipped {bits}-bit decoder in this checkout (train it with scripts/train_decoders.sh)")
+    loaded = dec.load_shipped_decoder(bits)
+    assert loaded.bits == bits and loaded.metadata["whitened"] is True
+    recorded = loaded.metadata["eval"]
+    assert set(recorded["heldout"]) == {"64px", "128px", "256px"}
+    with np.load(dec.shipped_check_path(bits), allow_pickle=False) as check:
+        images, message = check["images"], check["bits"]
+    assert images.dtype == np.uint8 and message.shape == (images.shape[0], bits)
+    logits = dec.decode_logits(loaded.variables, jnp.asarray(images, jnp.float32) / 255.0, loaded.wavelet)
+    acc = float(jnp.mean((logits > 0) == (jnp.asarray(message) > 0)))
+    # Float differences between machines may flip a bit whose logit is ~0: allow two of them.
+    assert abs(acc - recorded["check_batch_bit_acc"]) <= 2.0 / message.size
+    # Unwatermarked images decode to (near) random bits through the whitened decoder.
+    clean = decoder_train.heldout_images(16, images.shape[1])
+    clean_acc = float(
+        jnp.mean((dec.decode_logits(loaded.variables, jnp.asarray(clean)) > 0) == (jnp.asarray(message) > 0))
+    )
+    assert 0.3 < clean_acc < 0.7
+
+
+def test_shipped_decoder_missing_bits() -> None:
+    with pytest.raises(MnerfError, match="no shipped decoder for 32 bits"):
+        dec.shipped_decoder_path(32)
+
+
+def test_short_training_run_learns(tmp_path: Path) -> None:
+    """A tiny run: accuracy rises clearly above chance, whitening is fitted, files are written and load."""
+    cfg = decoder_train.DecoderTrainConfig(
+        bits=8,
+        steps=100,
+        finetune_steps=10,
+        size=32,
+        crop_margin=0,
+        batch=16,
+        lr=3e-3,
+        warmup_steps=10,
+        clean_fraction=1.0,
+        start_psnr=10.0,
+        target_psnr=10.0,
+        whiten_images=64,
+        eval_images=64,
+        eval_sizes=(32,),
+        eval_augment_draws=0,
+        check_images=4,
+    )
+    metrics = decoder_train.train_decoder(cfg, tmp_path, progress=False, checkpoint_every=40)
+    # 64 held-out images × 8 bits: chance is 0.5 ± 0.022. The raw (unwhitened) decoder right after the joint
+    # phase must be clearly above it; whitening and 10 encoder steps are exercised, not judged.
+    assert metrics["whitening"]["bit_acc_none_raw_decoder"] > 0.58, metrics
+    heldout = metrics["heldout"]["32px"]
+    assert 0.0 <= heldout["bit_acc_none"] <= 1.0 and heldout["bit_acc_low"] is None
+    assert heldout["psnr_min"] >= 10.0 - 1e-3
+    loaded = dec.load_decoder(tmp_path / "decoder.npz", expect_bits=8)
+    assert loaded.metadata["whitened"] is True
+    assert json.loads((tmp_path / "metrics.json").read_text())["fingerprint"] == loaded.fingerprint
+    with pytest.raises(MnerfError, match="pass --resume"):
+        decoder_train.train_decoder(cfg, tmp_path, progress=False)
+    # The checkpoint refuses other settings.
+    other = decoder_train.DecoderTrainConfig(**{**cfg.to_dict(), "batch": 8})
+    with pytest.raises(MnerfError, match="other settings"):
+        decoder_train.train_decoder(other, tmp_path, resume=True, progress=False)
+
+
+def test_checkpoint_round_trip(tmp_path: Path) -> None:
+    cfg = decoder_train.DecoderTrainConfig(bits=8)
+    state, _ = decoder_train.init_state(cfg)
+    state["step"], state["whitened"], state["elapsed_s"] = 17, True, 3.5
+    decoder_train.save_checkpoint(tmp_path / "c.msgpack", state, cfg)
+    template, _ = decoder_train.init_state(cfg)
+    restored = decoder_train.load_checkpoint(tmp_path / "c.msgpack", template, cfg)
+    assert (restored["step"], restored["whitened"], restored["elapsed_s"]) == (17, True, 3.5)
+    for a, b in zip(jax.tree.leaves(restored["opt"]), jax.tree.leaves(state["opt"]), strict=True):
+        np.testing.assert_array_equal(a, b)
+    (tmp_path / "bad.msgpack").write_bytes(b"\x00\x01garbage")
+    with pytest.raises(MnerfError, match="unreadable"):
+        decoder_train.load_checkpoint(tmp_path / "bad.msgpack", template, cfg)
+
+
+def test_encoder_respects_psnr() -> None:
+    cfg = decoder_train.DecoderTrainConfig(bits=16, target_psnr=35.5)
+    enc = decoder_train.init_encoder(jax.random.PRNGKey(0), 16)
+    images = jnp.asarray(decoder_train.heldout_images(4, 48))
+    bits = jnp.asarray(decoder_train.heldout_messages(4, 16))
+    encoded, _ = decoder_train.encode(enc, images, bits, cfg)
+    assert encoded.shape == images.shape
+    assert float(encoded.min()) >= 0.0 and float(encoded.max()) <= 1.0
+    mse = jnp.mean((encoded - images) ** 2, axis=(1, 2, 3))
+    assert float(jnp.min(-10 * jnp.log10(mse))) >= 35.5 - 1e-3
+    assert decoder_train.psnr_schedule(decoder_train.DecoderTrainConfig(steps=100), 0) == 20.0
+    assert decoder_train.psnr_schedule(decoder_train.DecoderTrainConfig(steps=100), 99) == 35.5
