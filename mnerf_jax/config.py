@@ -102,7 +102,8 @@ class WatermarkConfig:
     wm_ranks: tuple[int, int, int] = (8, 8, 8)  # #WMCom per VM mode
     emb_dim: int = 16
     emb_hidden: int = 32
-    variant: str = "multinerf"  # multinerf | no_grid | no_film | frozen_geometry | early | waterf | waterf_mod
+    # multinerf | no_grid | no_film | frozen_geometry | early | waterf | waterf_mod
+    variant: str = "multinerf"
     min_hamming: int = 0  # 0: chosen from num_ids and bits
     key_seed: int = 0
     phase1_steps: int = 200

@@ -169,7 +169,7 @@ def test_bad_decoder_files(tmp_path: Path, small_decoder: dict) -> None:
 @pytest.mark.parametrize("bits", dec.SHIPPED_BITS)
 def test_shipped_decoder_reproduces_recorded_accuracy(bits: int) -> None:
     if not dec.shipped_check_path(bits).is_file():
-        pytest.skip(f"no shipped {bits}-bit decoder in this checkout (train it with scripts/train_decoders.sh)")
+        pytest.skip(f"no shipped {bits}-bit decoder in this checkout (scripts/train_decoders.sh trains it)")
     loaded = dec.load_shipped_decoder(bits)
     assert loaded.bits == bits and loaded.metadata["whitened"] is True
     recorded = loaded.metadata["eval"]
