@@ -133,9 +133,9 @@ def print_table(rows: list[tuple[str, str]], file: Any = sys.stdout) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mnerf_jax.commands.fit import tune_host_allocator
+    from mnerf_jax.commands.fit import prepare_process
 
-    tune_host_allocator()
+    prepare_process()
     from mnerf_jax.config import load_config
 
     ctx = DemoContext(

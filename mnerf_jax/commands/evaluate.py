@@ -27,9 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mnerf_jax.commands.fit import tune_host_allocator
+    from mnerf_jax.commands.fit import prepare_process
 
-    tune_host_allocator()
+    prepare_process()
     from mnerf_jax import run as runs
 
     loaded = runs.load_run(args.run)

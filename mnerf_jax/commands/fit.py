@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -15,20 +16,55 @@ HELP = "Fit a TensoRF radiance field to a scene (checkpoints, TensorBoard, test 
 _PRESET_FOR_LAYOUT = {"blender": "blender", "llff": "llff"}
 
 
-def tune_host_allocator() -> bool:
-    """Keep freed memory in glibc's heap instead of returning it to the kernel (Linux/glibc only).
+HUGE_PAGE_TUNABLE = "glibc.malloc.hugetlb=1"
+_REEXEC_MARK = "MNERF_ALLOCATOR_REEXEC"
 
-    XLA:CPU allocates each call's temporary buffers with malloc. glibc serves large blocks with fresh
-    mmaps and unmaps them on free, so every train step faults its working set in again, page by
-    page: ~120k page faults and ~40 % extra (system) CPU time per step measured on a 2-core machine.
-    With mmap off, a high trim threshold and one arena, the blocks are reused from step to step.
-    Process-wide, so it is called by the commands and the scripts (before JAX allocates anything),
-    never on import. Returns whether the settings were applied.
+
+def _huge_pages_on() -> bool:
+    return "glibc.malloc.hugetlb" in os.environ.get("GLIBC_TUNABLES", "")
+
+
+def reexec_with_huge_pages(argv: list[str] | None = None) -> None:
+    """Restart the ``mnerf`` process once with glibc's transparent-huge-page tunable (Linux only).
+
+    XLA:CPU allocates each call's temporary buffers with malloc; glibc serves large blocks with
+    fresh mmaps and unmaps them on free, so every train step faults its working set in again, 4 KiB
+    at a time: ~120k page faults and 0.18 s of system time per step of a 2-core run. With
+    ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1`` those mappings use 2 MiB pages: ~1k faults, and a train
+    step took 0.16 s instead of 0.26 s. The tunable is read at process start, hence the re-exec.
+
+    ``argv``: the command that restarts this process (a script passes its own); by default only the
+    ``mnerf`` command-line process restarts itself (never a caller of ``cli.main``, such as tests).
+    """
+    if not sys.platform.startswith("linux") or _huge_pages_on() or os.environ.get(_REEXEC_MARK):
+        return
+    if argv is None:
+        main = sys.modules.get("__main__")
+        spec = getattr(main, "__spec__", None)
+        if not ((spec is not None and spec.name == "mnerf_jax.cli") or Path(sys.argv[0]).name == "mnerf"):
+            return
+        argv = [sys.executable, "-m", "mnerf_jax.cli", *sys.argv[1:]]
+    env = dict(os.environ)
+    tunables = env.get("GLIBC_TUNABLES", "")
+    env["GLIBC_TUNABLES"] = f"{tunables}:{HUGE_PAGE_TUNABLE}" if tunables else HUGE_PAGE_TUNABLE
+    env[_REEXEC_MARK] = "1"
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.execve(argv[0], argv, env)
+
+
+def tune_host_allocator() -> bool:
+    """Make glibc keep and reuse XLA's large temporary buffers (Linux/glibc only; process-wide).
+
+    Without the huge-page tunable (see ``reexec_with_huge_pages``) the next best thing: mmap off,
+    a high trim threshold and one arena, so freed blocks stay in the heap and are reused from step
+    to step (system time per step 0.18 s -> 0.05 s measured). Called by the commands and scripts
+    before JAX allocates anything, never on import. Returns whether settings were changed.
     """
     import ctypes
     import ctypes.util
 
-    if not sys.platform.startswith("linux"):
+    if not sys.platform.startswith("linux") or _huge_pages_on():
         return False
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
@@ -41,6 +77,12 @@ def tune_host_allocator() -> bool:
     ok &= mallopt(m_top_pad, 64 << 20) == 1
     ok &= mallopt(m_arena_max, 1) == 1
     return bool(ok)
+
+
+def prepare_process() -> None:
+    """Allocator settings for a command's process: huge pages via a re-exec, else mallopt."""
+    reexec_with_huge_pages()
+    tune_host_allocator()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -122,7 +164,7 @@ class Progress:
 
 
 def run(args: argparse.Namespace) -> int:
-    tune_host_allocator()
+    prepare_process()
     from mnerf_jax.config import load_config
 
     preset = choose_preset(args.config, args.data)
