@@ -85,8 +85,8 @@ class DecoderTrainConfig:
     """Everything that decides the trajectory of a decoder training run (compared on ``--resume``)."""
 
     bits: int = 16
-    steps: int = 6000  # joint encoder+decoder steps
-    finetune_steps: int = 800  # encoder-only steps through the whitened decoder
+    steps: int = 10000  # joint encoder+decoder steps
+    finetune_steps: int = 1000  # encoder-only steps through the whitened decoder
     size: int = 64  # side in pixels of the images the decoder sees in training (LL2 side = size / 4)
     crop_margin: int = 16  # images are encoded at size + margin; the decoder sees a random size × size window
     batch: int = 16
@@ -163,11 +163,6 @@ def init_encoder(key: jax.Array, bits: int, channels: int = 32, depth: int = 3) 
     module = LL2Encoder(channels=channels, depth=depth)
     init = jax.jit(lambda k: module.init(k, jnp.zeros((1, 8, 8, 3)), jnp.zeros((1, bits)), train=False))
     return dict(init(key))
-
-
-def psnr_rms(target_psnr: float) -> float:
-    """RMS error of an image in [0, 1] at the given PSNR."""
-    return 10.0 ** (-target_psnr / 20.0)
 
 
 def encode(

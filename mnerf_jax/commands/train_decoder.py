@@ -32,7 +32,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.finetune_steps,
         help=f"encoder steps through the whitened decoder ({d.finetune_steps})",
     )
-    parser.add_argument("--size", type=int, default=d.size, help=f"training crop side in pixels ({d.size})")
+    parser.add_argument(
+        "--size",
+        type=int,
+        default=d.size,
+        help=f"side of the training windows the decoder sees ({d.size}; encoded at +{d.crop_margin})",
+    )
     parser.add_argument("--batch", type=int, default=d.batch, help=f"images per step ({d.batch})")
     parser.add_argument("--seed", type=int, default=d.seed, help=f"random seed ({d.seed})")
     parser.add_argument("--lr", type=float, default=d.lr, help=f"peak learning rate ({d.lr})")
