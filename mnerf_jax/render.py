@@ -70,14 +70,14 @@ def xla_compiler_options() -> dict[str, str]:
     return dict(_CPU_OPTIONS)
 
 
-def _jit(fun: Callable | None = None, **kwargs: Any) -> Any:
+def jit_cpu_tuned(fun: Callable | None = None, **kwargs: Any) -> Any:
     """``jax.jit`` with ``xla_compiler_options()`` when called at top level (chosen at the first call).
 
     Inside another transformation (arguments are tracers) the plain ``jax.jit`` is used: JAX accepts
     compiler options only on the outermost jit, whose owner should pass ``xla_compiler_options()``.
     """
     if fun is None:
-        return functools.partial(_jit, **kwargs)
+        return functools.partial(jit_cpu_tuned, **kwargs)
     plain = jax.jit(fun, **kwargs)
     top: list[Callable] = []
 
@@ -425,7 +425,9 @@ def compact(mask: Array, budget: int) -> tuple[Array, Array]:
 # --------------------------------------------------------------------------------------------------
 
 
-@_jit(static_argnums=(0,), static_argnames=("train", "density_budget", "colour_budget", "weight_threshold"))
+@jit_cpu_tuned(
+    static_argnums=(0,), static_argnames=("train", "density_budget", "colour_budget", "weight_threshold")
+)
 def render_rays(
     fns: FieldFns,
     params: Params,
@@ -718,7 +720,7 @@ def render_image(
 # --------------------------------------------------------------------------------------------------
 
 
-@_jit(static_argnums=(0, 3, 5))
+@jit_cpu_tuned(static_argnums=(0, 3, 5))
 def _dense_alpha_chunk(
     fns: FieldFns,
     params: Params,
@@ -810,7 +812,7 @@ def shrink_field(
     return jax.tree_util.tree_map(crop, params, is_leaf=_is_vm), aligned
 
 
-@_jit(static_argnums=(3, 4))
+@jit_cpu_tuned(static_argnums=(3, 4))
 def _filter_chunk(geometry: Geometry, rays_o: Array, rays_d: Array, n_samples: int, bbox_only: bool) -> Array:
     if bbox_only:
         t_in, t_out = aabb_entry_exit(rays_o, rays_d, geometry.aabb)

@@ -208,7 +208,8 @@ def _loss_fn(
     return loss, aux
 
 
-@functools.partial(jax.jit, static_argnames=("fns", "hyper", "density_budget", "colour_budget"))
+# The top-level step takes render.xla_compiler_options() (XLA:CPU fusion settings).
+@render.jit_cpu_tuned(static_argnames=("fns", "hyper", "density_budget", "colour_budget"))
 def train_step(
     state: TrainState,
     rays_o: Array,
