@@ -283,7 +283,7 @@ def deferred_grad(
 # The embedding run: state, optimiser, the jitted step, the loop, checkpoints.
 # ==========================================================================================================
 
-WM_KIND = "multinerf"
+WM_KIND = runs.WATERMARK_KIND
 STATE_VERSION = 1
 META_FILE = "embed.json"
 DECODER_FILE = "decoder.npz"
@@ -632,15 +632,21 @@ def _restore(store: CheckpointStore, run_dir: Path, step: int | None = None,
     return config, tree, meta
 
 
+def _keys_and_decoder(run_dir: Path) -> tuple[keys_lib.KeySet, decoder_lib.LoadedDecoder]:
+    """``keys.json`` and ``decoder.npz`` of a watermarked run, checked against each other."""
+    if not (run_dir / DECODER_FILE).is_file():
+        raise EmbedError(f"{run_dir} has no {DECODER_FILE} (the embedding has not written a checkpoint yet)")
+    dec = decoder_lib.load_decoder(run_dir / DECODER_FILE)
+    keys = keys_lib.load_keys(run_dir, decoder_fingerprint=dec.fingerprint, expect_bits=dec.bits)
+    return keys, dec
+
+
 def _load_multinerf(
     run_dir: Path, marker: dict[str, Any], config: Config, step: int | None
 ) -> runs.LoadedRun:
     """``run.load_run`` loader of watermarked runs: ``cond`` renders ID 0; ``extras`` hold the keys, the
     decoder, the source run and the number of IDs (see :func:`with_id`)."""
-    if not (run_dir / DECODER_FILE).is_file():
-        raise EmbedError(f"{run_dir} has no {DECODER_FILE} (the embedding has not written a checkpoint yet)")
-    dec = decoder_lib.load_decoder(run_dir / DECODER_FILE)
-    keys = keys_lib.load_keys(run_dir, decoder_fingerprint=dec.fingerprint, expect_bits=dec.bits)
+    keys, dec = _keys_and_decoder(run_dir)
     store = CheckpointStore(run_dir, create=False)
     try:
         if store.latest_step() is None:
@@ -682,18 +688,30 @@ def with_id(run: runs.LoadedRun, index: Any) -> runs.LoadedRun:
     return dataclasses.replace(run, cond=cond, extras={**run.extras, "id": index})
 
 
-def load_watermarked_run(run_dir: str | Path, step: int | None = None) -> runs.LoadedRun:
-    """``run.load_run`` for a directory that must hold a watermarked run."""
+def require_watermarked(run_dir: str | Path) -> dict[str, Any]:
+    """``run.json`` of a watermarked run directory; EmbedError saying what ``run_dir`` holds otherwise."""
     run_dir = Path(run_dir)
     marker = runs.read_marker(run_dir) if run_dir.is_dir() else None
     if marker is not None and marker.get("kind") == WM_KIND:
-        return runs.load_run(run_dir, step)
+        return marker
     if marker is not None:
         raise EmbedError(f"{run_dir} holds a {marker.get('kind')!r} run without watermarks "
                          f"(make one with `mnerf embed --from {run_dir} --out WMRUN`)")  # fmt: skip
     if (run_dir / keys_lib.KEYS_FILE).is_file():
         raise EmbedError(f"{run_dir} has keys but no {runs.RUN_MARKER}: not a complete watermarked run")
     raise EmbedError(f"{run_dir} is not a watermarked run (make one with `mnerf embed`)")
+
+
+def load_watermarked_run(run_dir: str | Path, step: int | None = None) -> runs.LoadedRun:
+    """``run.load_run`` for a directory that must hold a watermarked run."""
+    require_watermarked(run_dir)
+    return runs.load_run(run_dir, step)
+
+
+def load_keys_and_decoder(run_dir: str | Path) -> tuple[keys_lib.KeySet, decoder_lib.LoadedDecoder]:
+    """The keys and the (fine-tuned) decoder of a watermarked run, without restoring its field."""
+    require_watermarked(run_dir)
+    return _keys_and_decoder(Path(run_dir))
 
 
 def render_with_id(run: runs.LoadedRun, index: int, cameras: Any, indices: Sequence[int] | None = None,

@@ -9,13 +9,17 @@ A run directory holds::
     RUN/tb/             TensorBoard scalars
 
 ``load_run(RUN)`` dispatches on ``run.json``'s ``kind`` to a loader registered with
-``register_run_kind``; the TensoRF loader is built in. A loader returns a ``LoadedRun``: config,
-params, geometry, field functions and a conditioning pytree, which is all rendering needs.
+``register_run_kind``; the TensoRF loader is built in, and the module that registers any other kind
+(``LOADER_MODULES``, e.g. ``mnerf_jax.embed`` for watermarked runs) is imported on first use, so
+``load_run`` works from every entry point without ``run`` importing those modules up front. A loader
+returns a ``LoadedRun``: config, params, geometry, field functions and a conditioning pytree, which is all
+rendering needs.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import json
 import math
 import os
@@ -35,6 +39,9 @@ RUN_MARKER = "run.json"
 CONFIG_FILE = "config.json"
 RUN_FORMAT_VERSION = 1
 TENSORF_KIND = "tensorf"
+WATERMARK_KIND = "multinerf"
+# Modules that register a loader for a kind when imported (imported lazily: they import this module).
+LOADER_MODULES: dict[str, str] = {WATERMARK_KIND: "mnerf_jax.embed"}
 
 
 class RunError(MnerfError):
@@ -223,6 +230,8 @@ def load_run(run_dir: str | Path, step: int | None = None) -> LoadedRun:
     if marker is None:
         raise RunError(f"{run_dir} is not a mnerf run (no {RUN_MARKER})")
     kind = marker["kind"]
+    if kind not in _LOADERS and kind in LOADER_MODULES:
+        importlib.import_module(LOADER_MODULES[kind])  # registers the loader
     if kind not in _LOADERS:
         raise RunError(f"{run_dir} holds a {kind!r} run, which this version cannot load")
     return _LOADERS[kind](run_dir, marker, read_run_config(run_dir), step)

@@ -345,17 +345,23 @@ def _clean_model(run: Any) -> Any:
 
 
 def identify_images(
-    run_dir: str | Path, paths: Sequence[str | Path], threshold: float | None = None
+    run_dir: str | Path, paths: Sequence[str | Path], threshold: float | None = None, batch_size: int = 32
 ) -> list[dict[str, Any]]:
     """Decode image files with a watermarked run's decoder and identify the ID of each (``mnerf extract
     --run WMRUN IMAGE...``): one record per image with the bits, the best-matching ID, its bit accuracy,
-    the corrected p-value and the decision (−1: no watermark)."""
-    from mnerf_jax import embed, extract
+    the p-value, the corrected p-value and the decision ``id`` (−1: no watermark, i.e. the corrected
+    p-value is not below ``threshold``, default the run's ``watermark.id_threshold``).
 
-    run = embed.load_watermarked_run(run_dir)
-    keys, decoder = run.extras["keys"], run.extras["decoder"]
-    thr = float(run.config.watermark.id_threshold if threshold is None else threshold)
-    logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet)
+    Only the run's keys, decoder and config are read (not its field checkpoint).
+    """
+    from mnerf_jax import embed, extract
+    from mnerf_jax import run as runs
+
+    keys, decoder = embed.load_keys_and_decoder(run_dir)
+    if threshold is None:
+        threshold = runs.read_run_config(run_dir).watermark.id_threshold
+    thr = float(threshold)
+    logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, batch_size)
     ident = identify(logits_to_bits(logits), keys.messages, thr)
     return [
         {

@@ -1,10 +1,19 @@
-"""Shared fixtures: the real scenes under ../shared/data, skipped with a reason where absent."""
+"""Shared fixtures: the real scenes under ../shared/data (skipped with a reason where absent), and a tiny
+fitted + watermarked procedural run built once per session (``tiny``)."""
 
 from __future__ import annotations
 
+import atexit
+import dataclasses
+import functools
 import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 # Tests run on CPU; keep XLA from grabbing an accelerator if one happens to be present.
@@ -12,6 +21,20 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("MNERF_SHARED_DATA", PROJECT_ROOT.parent / "shared" / "data"))
+
+
+@pytest.fixture
+def mnerf(capsys: pytest.CaptureFixture) -> Callable[..., tuple[int, str, str]]:
+    """``mnerf(*argv)`` runs the command line in this process -> ``(exit status, stdout, stderr)``."""
+    from mnerf_jax import cli
+
+    def run(*argv: object) -> tuple[int, str, str]:
+        capsys.readouterr()  # only this call's output
+        code = cli.main([str(a) for a in argv])
+        out = capsys.readouterr()
+        return code, out.out, out.err
+
+    return run
 
 
 @pytest.fixture(scope="session")
@@ -28,3 +51,79 @@ def fern_dir() -> Path:
     if not (path / "poses_bounds.npy").is_file():
         pytest.skip(f"real LLFF fern not found at {path} (set MNERF_SHARED_DATA)")
     return path
+
+
+# ------------------------------------------------------------------ a tiny fitted and watermarked run
+
+TINY_FIT = [
+    "data.procedural_size=32", "data.procedural_views=12", "train.n_iters=150", "train.batch_size=1024",
+    "train.n_voxel_init=27000", "train.n_voxel_final=27000", "train.upsample_steps=",
+    "train.alpha_mask_steps=", "train.checkpoint_every=150", "model.density_ranks=4,4,4",
+    "model.appearance_ranks=8,8,8", "model.app_features=12", "model.mlp_width=32",
+]  # fmt: skip
+TINY_EMBED = [
+    "watermark.patch_size=16", "watermark.phase1_steps=40", "watermark.phase2_steps=40",
+    "watermark.checkpoint_every=40", "watermark.wm_ranks=4,4,4",
+]  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class TinyRuns:
+    """``fit``: a fitted 32-px procedural TensoRF; ``decoder``: a random 8-bit decoder file; ``wm``: a 2-ID ×
+    8-bit watermarked run of ``fit`` made with ``embed_overrides``; ``seconds``: the embedding's time."""
+
+    root: Path
+    fit: Path
+    decoder: Path
+    wm: Path
+    seconds: float
+    embed_overrides: tuple[str, ...] = tuple(TINY_EMBED)
+
+
+def random_decoder(path: Path, bits: int, images: np.ndarray | None = None) -> Path:
+    """A deterministic random-init ``bits``-bit decoder file, whitened on ``images [N, H, W, 3]`` if given
+    (no decoder training needed)."""
+    import jax
+    import jax.numpy as jnp
+
+    from mnerf_jax import decoder, dwt
+
+    variables = decoder.init_decoder(jax.random.PRNGKey(0), bits)
+    if images is not None:
+        rng = np.random.default_rng(0)
+        batch = np.concatenate([images, images[:, ::-1], images[:, :, ::-1],
+                                np.clip(images + rng.normal(0, 0.05, images.shape), 0, 1)]).astype(np.float32)
+        variables = decoder.fit_whitening(variables, [dwt.ll2(jnp.asarray(batch))])
+    decoder.save_decoder(path, variables, {"note": "random init, whitened on the procedural scene (tests)"})
+    return path
+
+
+@functools.cache
+def tiny_runs() -> TinyRuns:
+    """Build the tiny runs once per session (about a minute on one core)."""
+    from mnerf_jax import embed
+    from mnerf_jax.commands.fit import fit_run
+    from mnerf_jax.config import load_config
+    from mnerf_jax.data import load_scene
+
+    root = Path(tempfile.mkdtemp(prefix="mnerf-embed-test-"))
+    atexit.register(shutil.rmtree, root, True)
+    config = load_config("procedural", TINY_FIT)
+    fit_run(config, None, root / "fit", evaluate=False, quiet=True)
+    scene = load_scene(None, config.data, config.render, ("train",))
+    decoder = random_decoder(root / "dec8.npz", 8, scene.split("train").images)
+    t0 = time.perf_counter()
+    embed.embed(root / "fit", root / "wm", 2, 8, overrides=TINY_EMBED, decoder_path=decoder, progress=False)
+    return TinyRuns(root, root / "fit", decoder, root / "wm", time.perf_counter() - t0)
+
+
+@pytest.fixture(scope="session")
+def make_decoder() -> Callable[..., Path]:
+    """:func:`random_decoder`: ``make_decoder(path, bits, images=None)`` writes a decoder file."""
+    return random_decoder
+
+
+@pytest.fixture(scope="session")
+def tiny() -> TinyRuns:
+    """The tiny fitted and watermarked runs (shared: tests that write into them work on copies)."""
+    return tiny_runs()

@@ -26,12 +26,6 @@ def _snapshot(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
-def _main(capsys, *argv: str) -> tuple[int, str, str]:
-    code = cli.main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory) -> Path:
     """A fitted tiny procedural run (fit -> metrics.json, eval-test.json)."""
@@ -52,23 +46,23 @@ def test_fit_writes_the_documented_files(tiny_run):
     assert any((tiny_run / "tb").iterdir())
 
 
-def test_render_test_split_and_path(tiny_run, tmp_path, capsys):
-    code, out, _ = _main(capsys, "render", "--run", tiny_run, "--split", "test", "--out", tmp_path / "t",
+def test_render_test_split_and_path(tiny_run, tmp_path, mnerf):
+    code, out, _ = mnerf("render", "--run", tiny_run, "--split", "test", "--out", tmp_path / "t",
                          "--views", "2", "--quiet")  # fmt: skip
     assert code == 0 and sorted(p.name for p in (tmp_path / "t").iterdir()) == ["r_0.png", "r_3.png"]
-    code, _, _ = _main(capsys, "render", "--run", tiny_run, "--split", "path", "--out", tmp_path / "p",
+    code, _, _ = mnerf("render", "--run", tiny_run, "--split", "path", "--out", tmp_path / "p",
                        "--frames", "3", "--quiet")  # fmt: skip
     assert code == 0 and (tmp_path / "p" / "path.gif").stat().st_size > 0
     assert len(list((tmp_path / "p").glob("frame_*.png"))) == 3
     # Rendering again over the same files is refused unless asked for.
     before = _snapshot(tmp_path / "t")
-    code, _, err = _main(capsys, "render", "--run", tiny_run, "--split", "test", "--out", tmp_path / "t",
+    code, _, err = mnerf("render", "--run", tiny_run, "--split", "test", "--out", tmp_path / "t",
                          "--views", "2", "--quiet")  # fmt: skip
     assert code == 2 and "--overwrite" in err and _snapshot(tmp_path / "t") == before
 
 
-def test_evaluate_writes_and_prints_metrics(tiny_run, capsys):
-    code, out, _ = _main(capsys, "evaluate", "--run", tiny_run, "--views", "2", "--quiet")
+def test_evaluate_writes_and_prints_metrics(tiny_run, mnerf):
+    code, out, _ = mnerf("evaluate", "--run", tiny_run, "--views", "2", "--quiet")
     assert code == 0
     printed = json.loads(out.strip().splitlines()[-1])
     saved = json.loads((tiny_run / "eval-test.json").read_text())
@@ -77,31 +71,31 @@ def test_evaluate_writes_and_prints_metrics(tiny_run, capsys):
     assert saved["psnr"] == pytest.approx(printed["psnr"])
 
 
-def test_fit_into_another_runs_directory_is_refused_and_changes_nothing(tiny_run, capsys):
+def test_fit_into_another_runs_directory_is_refused_and_changes_nothing(tiny_run, mnerf):
     before = _snapshot(tiny_run)
-    code, _, err = _main(capsys, "fit", "--out", tiny_run, *_sets([*TINY, "train.n_iters=61"]), "--quiet")
+    code, _, err = mnerf("fit", "--out", tiny_run, *_sets([*TINY, "train.n_iters=61"]), "--quiet")
     assert code == 2 and "holds another run" in err and "train.n_iters: 60 -> 61" in err
-    code, _, err = _main(capsys, "fit", "--out", tiny_run, *_sets(TINY), "--quiet")
+    code, _, err = mnerf("fit", "--out", tiny_run, *_sets(TINY), "--quiet")
     assert code == 2 and "pass --resume" in err
     assert _snapshot(tiny_run) == before
 
 
-def test_fit_into_a_non_run_directory_is_refused(tmp_path, capsys):
+def test_fit_into_a_non_run_directory_is_refused(tmp_path, mnerf):
     (tmp_path / "notes.txt").write_text("keep me")
-    code, _, err = _main(capsys, "fit", "--out", tmp_path, *_sets(TINY), "--quiet")
+    code, _, err = mnerf("fit", "--out", tmp_path, *_sets(TINY), "--quiet")
     assert code == 2 and "holds no mnerf run" in err
     assert _snapshot(tmp_path) == {"notes.txt": b"keep me"}
 
 
-def test_unknown_set_key_is_one_clear_line(tmp_path, capsys):
-    code, _, err = _main(capsys, "fit", "--out", tmp_path / "x", "--set", "train.n_iterz=5")
+def test_unknown_set_key_is_one_clear_line(tmp_path, mnerf):
+    code, _, err = mnerf("fit", "--out", tmp_path / "x", "--set", "train.n_iterz=5")
     assert code == 2 and err.strip().count("\n") == 0 and "unknown config key config.train.n_iterz" in err
     assert not (tmp_path / "x").exists()
 
 
-def test_missing_data_and_missing_checkpoint_are_clear_errors(tmp_path, capsys):
-    code, _, err = _main(
-        capsys, "fit", "--config", "quick", "--data", tmp_path / "nope", "--out", tmp_path / "r"
+def test_missing_data_and_missing_checkpoint_are_clear_errors(tmp_path, mnerf):
+    code, _, err = mnerf(
+        "fit", "--config", "quick", "--data", tmp_path / "nope", "--out", tmp_path / "r"
     )
     assert code == 2 and "no such scene directory" in err and not (tmp_path / "r").exists()
     # A run directory whose fit never reached a checkpoint.
@@ -111,21 +105,28 @@ def test_missing_data_and_missing_checkpoint_are_clear_errors(tmp_path, capsys):
     runs.write_run_files(tmp_path / "empty", load_config("procedural", TINY), data=None)
     for command in ("render", "evaluate"):
         extra = ["--out", str(tmp_path / "o")] if command == "render" else []
-        code, _, err = _main(capsys, command, "--run", tmp_path / "empty", *extra)
+        code, _, err = mnerf(command, "--run", tmp_path / "empty", *extra)
         assert code == 2 and "no checkpoint" in err, command
-    code, _, err = _main(capsys, "evaluate", "--run", tmp_path / "missing")
+    code, _, err = mnerf("evaluate", "--run", tmp_path / "missing")
     assert code == 2 and "no such directory" in err
 
 
-def test_demo_runs_its_steps_into_a_folder(tmp_path, capsys):
+def test_demo_runs_its_steps_into_a_folder(tmp_path, mnerf, monkeypatch):
+    # Without a 16-bit decoder (none shipped, no --decoder) the watermark step is skipped with one line.
+    from mnerf_jax import decoder
+
+    monkeypatch.setattr(decoder, "shipped_decoder_path", lambda bits: tmp_path / f"absent_l{bits}.npz")
     out = tmp_path / "demo"
-    code, stdout, _ = _main(capsys, "demo", "--out", out, *_sets(TINY), "--frames", "2", "--quiet")
+    code, stdout, err = mnerf("demo", "--out", out, *_sets(TINY), "--frames", "2", "--quiet")
     assert code == 0
     assert (out / "run" / "eval-test.json").is_file() and (out / "orbit" / "path.gif").is_file()
     assert len(list((out / "test").glob("*.png"))) == 4
     assert "test PSNR" in stdout
+    skipped = [line for line in err.splitlines() if "watermark step skipped" in line]
+    assert len(skipped) == 1 and "--decoder FILE" in skipped[0], err
+    assert "skipped (no 16-bit decoder)" in stdout and not (out / "wm").exists()
     # A folder that is neither empty nor a demo's is refused.
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "x").write_text("x")
-    code, _, err = _main(capsys, "demo", "--out", tmp_path / "other", *_sets(TINY), "--quiet")
+    code, _, err = mnerf("demo", "--out", tmp_path / "other", *_sets(TINY), "--quiet")
     assert code == 2 and "not a demo folder" in err

@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import atexit
-import dataclasses
 import functools
 import json
 import shutil
-import tempfile
-import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +16,9 @@ import pytest
 from mnerf_jax import dwt
 from mnerf_jax import embed as E
 from mnerf_jax.errors import MnerfError
+
+if TYPE_CHECKING:
+    from conftest import TinyRuns  # the `tiny` fixture's type (tests/conftest.py)
 
 # ----------------------------------------------------------------------------- toy differentiable renderer
 
@@ -263,62 +263,7 @@ def test_deferred_memory_follows_the_patch_not_the_image() -> None:
 
 
 # ------------------------------------------------------------------------------------- tiny real runs
-
-TINY_FIT = [
-    "data.procedural_size=32", "data.procedural_views=12", "train.n_iters=150", "train.batch_size=1024",
-    "train.n_voxel_init=27000", "train.n_voxel_final=27000", "train.upsample_steps=",
-    "train.alpha_mask_steps=", "train.checkpoint_every=150", "model.density_ranks=4,4,4",
-    "model.appearance_ranks=8,8,8", "model.app_features=12", "model.mlp_width=32",
-]  # fmt: skip
-TINY_EMBED = [
-    "watermark.patch_size=16", "watermark.phase1_steps=40", "watermark.phase2_steps=40",
-    "watermark.checkpoint_every=40", "watermark.wm_ranks=4,4,4",
-]  # fmt: skip
-
-
-@dataclasses.dataclass(frozen=True)
-class TinyRuns:
-    root: Path
-    fit: Path
-    decoder: Path
-    wm: Path
-    seconds: float
-
-
-def _random_decoder(path: Path, bits: int, images: np.ndarray) -> Path:
-    """A deterministic random-init decoder, whitened on the scene's images (no decoder training needed)."""
-    from mnerf_jax import decoder
-
-    rng = np.random.default_rng(0)
-    batch = np.concatenate([images, images[:, ::-1], images[:, :, ::-1],
-                            np.clip(images + rng.normal(0, 0.05, images.shape), 0, 1)]).astype(np.float32)
-    variables = decoder.init_decoder(jax.random.PRNGKey(0), bits)
-    variables = decoder.fit_whitening(variables, [dwt.ll2(jnp.asarray(batch))])
-    decoder.save_decoder(path, variables, {"note": "random init, whitened on the procedural scene (tests)"})
-    return path
-
-
-@functools.cache
-def tiny_runs() -> TinyRuns:
-    """A fitted 32-px procedural TensoRF, a random 8-bit decoder, and a 2-ID watermarked run (built once)."""
-    from mnerf_jax.commands.fit import fit_run
-    from mnerf_jax.config import load_config
-    from mnerf_jax.data import load_scene
-
-    root = Path(tempfile.mkdtemp(prefix="mnerf-embed-test-"))
-    atexit.register(shutil.rmtree, root, True)
-    config = load_config("procedural", TINY_FIT)
-    fit_run(config, None, root / "fit", evaluate=False, quiet=True)
-    scene = load_scene(None, config.data, config.render, ("train",))
-    decoder = _random_decoder(root / "dec8.npz", 8, scene.split("train").images)
-    t0 = time.perf_counter()
-    E.embed(root / "fit", root / "wm", 2, 8, overrides=TINY_EMBED, decoder_path=decoder, progress=False)
-    return TinyRuns(root, root / "fit", decoder, root / "wm", time.perf_counter() - t0)
-
-
-@pytest.fixture(scope="session")
-def tiny() -> TinyRuns:
-    return tiny_runs()
+# The `tiny` fixture (tests/conftest.py): a fitted procedural TensoRF, an 8-bit decoder, a 2-ID WMRUN.
 
 
 def test_tiny_embed_writes_a_complete_watermarked_run(tiny: TinyRuns) -> None:
@@ -363,7 +308,7 @@ def test_loaded_run_renders_each_id_differently(tiny: TinyRuns) -> None:
 def test_resume_continues_exactly(tiny: TinyRuns) -> None:
     # 3 steps, stop, resume to 5  ==  5 steps in one go.
     root = tiny.root
-    args = dict(overrides=TINY_EMBED, decoder_path=tiny.decoder, progress=False)
+    args = dict(overrides=tiny.embed_overrides, decoder_path=tiny.decoder, progress=False)
     E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=3, **args)
     with pytest.raises(MnerfError, match="--resume"):
         E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=5, **args)
@@ -382,19 +327,7 @@ def test_resume_continues_exactly(tiny: TinyRuns) -> None:
 # ------------------------------------------------------------------------------------------- bad input
 
 
-def _cli(*argv: str) -> tuple[int, str]:
-    import contextlib
-    import io
-
-    from mnerf_jax import cli
-
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err):
-        code = cli.main(list(argv))
-    return code, err.getvalue()
-
-
-def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path) -> None:
+def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, mnerf) -> None:
     base = ["embed", "--from", str(tiny.fit), "--decoder", str(tiny.decoder), "--quiet"]
     cases = [
         (["embed", "--from", str(tmp_path), "--out", str(tmp_path / "o1"), "--num-ids", "2", "--bits", "8"],
@@ -412,7 +345,7 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path) -
         ([*base, "--out", str(tiny.wm), "--num-ids", "2", "--bits", "8"], "--resume"),
     ]  # fmt: skip
     for argv, message in cases:
-        code, err = _cli(*argv)
+        code, _, err = mnerf(*argv)
         assert code == 2, (argv, err)
         lines = [line for line in err.splitlines() if line.strip()]
         assert len(lines) == 1 and lines[0].startswith("mnerf: error:") and message in lines[0], err
@@ -420,7 +353,8 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path) -
         assert not (tmp_path / name).exists(), name
 
 
-def test_watermarked_run_without_keys_or_with_foreign_keys_is_refused(tiny: TinyRuns, tmp_path: Path) -> None:
+def test_watermarked_run_without_keys_or_with_foreign_keys_is_refused(tiny: TinyRuns, tmp_path: Path,
+                                                                      mnerf) -> None:  # fmt: skip
     from mnerf_jax import keys as K
     from mnerf_jax import run as runs
 
@@ -429,8 +363,8 @@ def test_watermarked_run_without_keys_or_with_foreign_keys_is_refused(tiny: Tiny
     (copy / "keys.json").unlink()
     with pytest.raises(MnerfError, match="no keys.json"):
         runs.load_run(copy)
-    code, err = _cli("embed", "--from", str(tiny.fit), "--out", str(copy), "--num-ids", "2", "--bits", "8",
-                     "--decoder", str(tiny.decoder), "--resume", "--quiet")  # fmt: skip
+    code, _, err = mnerf("embed", "--from", tiny.fit, "--out", copy, "--num-ids", "2", "--bits", "8",
+                         "--decoder", tiny.decoder, "--resume", "--quiet")  # fmt: skip
     assert code == 2 and "no keys.json" in err
     # Keys of another bit length than the run's decoder.
     K.save_keys(copy, K.generate_keys(2, 16, 0, 0))

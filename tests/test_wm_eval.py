@@ -161,11 +161,8 @@ def test_report_of_saved_json_round_trips(tmp_path) -> None:
 
 
 @pytest.fixture(scope="session")
-def tiny_eval(tmp_path_factory) -> tuple[object, dict]:
-    from test_embed import tiny_runs
-
-    runs = tiny_runs()
-    return runs, V.evaluate_watermarked_run(runs.wm, "test", keep_renders=True)
+def tiny_eval(tiny) -> tuple[object, dict]:
+    return tiny, V.evaluate_watermarked_run(tiny.wm, "test", keep_renders=True)
 
 
 def test_tiny_run_identifies_its_ids(tiny_eval) -> None:

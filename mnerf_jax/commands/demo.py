@@ -1,5 +1,10 @@
 """``mnerf demo``: the end-to-end job on the built-in procedural scene, as a list of steps.
 
+After the fit, evaluation and renders, the watermark step embeds 4 IDs × 16 bits into the fitted run
+(``out/wm``), evaluates every ID on the test views and writes ``out/report`` (``report.demo_watermark``).
+It needs a 16-bit decoder, ``--decoder FILE`` or the shipped one; without one it is skipped with a line
+saying so.
+
 Each step is a function of a ``DemoContext``: it does one thing, records what it produced in
 ``ctx.rows`` (printed as a table at the end) and may leave objects for later steps in ``ctx.state``.
 To extend the demo, add a step function to ``STEPS``.
@@ -16,10 +21,12 @@ from pathlib import Path
 from typing import Any
 
 NAME = "demo"
-HELP = "Fit the built-in procedural scene, evaluate it and render its test views and an orbit GIF."
+HELP = ("Fit the built-in procedural scene, evaluate it, render its test views and an orbit GIF, then embed "
+        "4 watermark IDs × 16 bits and write a report (when a 16-bit decoder is available).")  # fmt: skip
 
 DEMO_MARKER = "demo.json"
 DEMO_CONFIG = "procedural"
+WM_IDS, WM_BITS = 4, 16
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -29,6 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a field of the procedural config (repeatable)")  # fmt: skip
     parser.add_argument("--frames", type=int, default=48, help="frames of the orbit GIF (default 48)")
+    parser.add_argument("--decoder", type=Path, default=None, metavar="FILE",
+                        help=f"{WM_BITS}-bit decoder for the watermark step (default: the shipped one; "
+                             "without either the step is skipped)")  # fmt: skip
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -40,6 +50,10 @@ class DemoContext:
     config: Any
     frames: int = 48
     quiet: bool = False
+    decoder: Path | None = None
+    no_decoder_reason: str = ""
+    # --set items for the embedding only (the demo's own --set reach it already, through the run's config).
+    embed_overrides: tuple[str, ...] = ()
     rows: list[tuple[str, str]] = dataclasses.field(default_factory=list)
     state: dict[str, Any] = dataclasses.field(default_factory=dict)
 
@@ -110,6 +124,43 @@ def step_render_orbit(ctx: DemoContext) -> None:
     ctx.row("orbit", f"{result['views']} frames, {ctx.out / 'orbit' / result['video']}")
 
 
+def find_decoder(path: Path | None) -> tuple[Path | None, str]:
+    """``(decoder file, "")`` for the watermark step, or ``(None, why there is none)``.
+
+    ``path`` (``--decoder``) is checked at once (MnerfError: missing, corrupt, not ``WM_BITS`` bits), so a
+    bad file stops the demo before it writes anything; without it the shipped decoder is used if present.
+    """
+    from mnerf_jax import decoder as decoder_lib
+
+    if path is not None:
+        decoder_lib.load_decoder(path, expect_bits=WM_BITS)
+        return path, ""
+    shipped = decoder_lib.shipped_decoder_path(WM_BITS)
+    if shipped.is_file():
+        return shipped, ""
+    return None, (f"no {WM_BITS}-bit decoder is shipped ({shipped} is missing); pass --decoder FILE "
+                  f"(make one with `mnerf train-decoder --bits {WM_BITS} --out DIR`)")  # fmt: skip
+
+
+def step_watermark(ctx: DemoContext) -> None:
+    """Embed ``WM_IDS × WM_BITS`` into the fitted run (``out/wm``), evaluate it, write ``out/report``."""
+    if ctx.decoder is None:
+        print(f"mnerf demo: watermark step skipped: {ctx.no_decoder_reason}", file=sys.stderr)
+        ctx.row("watermark", f"skipped (no {WM_BITS}-bit decoder)")
+        return
+    from mnerf_jax import report
+
+    result = report.demo_watermark(ctx.run_dir, ctx.out, num_ids=WM_IDS, bits=WM_BITS,
+                                   overrides=ctx.embed_overrides, decoder_path=ctx.decoder,
+                                   quiet=ctx.quiet)  # fmt: skip
+    ctx.state["watermark"] = result
+    ev = result["eval"]
+    ctx.row("watermark", f"{ev['num_ids']} IDs × {ev['bits']} bits, bit accuracy "
+                         f"{ev['bit_accuracy_mean']:.1%} (worst ID {ev['bit_accuracy_min']:.1%}), best match "
+                         f"right for {ev['identification_accuracy']:.0%} of {ev['views']} views × IDs")
+    ctx.row("watermark report", str(result["report"]["markdown"]))
+
+
 def _loaded(ctx: DemoContext) -> Any:
     from mnerf_jax import run as runs
 
@@ -123,6 +174,7 @@ STEPS: list[tuple[str, Callable[[DemoContext], None]]] = [
     ("evaluate", step_evaluate),
     ("render test views", step_render_test),
     ("render orbit", step_render_orbit),
+    ("watermark", step_watermark),
 ]
 
 
@@ -138,9 +190,10 @@ def run(args: argparse.Namespace) -> int:
     prepare_process()
     from mnerf_jax.config import load_config
 
-    ctx = DemoContext(
-        out=args.out, config=load_config(DEMO_CONFIG, args.set), frames=args.frames, quiet=args.quiet
-    )
+    config = load_config(DEMO_CONFIG, args.set)
+    decoder, reason = find_decoder(args.decoder)
+    ctx = DemoContext(out=args.out, config=config, frames=args.frames, quiet=args.quiet, decoder=decoder,
+                      no_decoder_reason=reason)  # fmt: skip
     prepare_out(ctx)
     t0 = time.perf_counter()
     for i, (title, step) in enumerate(STEPS, 1):
@@ -148,6 +201,16 @@ def run(args: argparse.Namespace) -> int:
             print(f"[{i}/{len(STEPS)}] {title}", file=sys.stderr)
         step(ctx)
     ctx.row("total time", f"{time.perf_counter() - t0:.1f} s")
-    print(f"mnerf demo: {ctx.out}")
-    print_table(ctx.rows)
+    print_summary(ctx)
     return 0
+
+
+def print_summary(ctx: DemoContext, file: Any = None) -> None:
+    """The steps' table, then the watermark evaluation's table when that step ran (to ``file``, default
+    stdout)."""
+    file = sys.stdout if file is None else file
+    print(f"mnerf demo: {ctx.out}", file=file)
+    print_table(ctx.rows, file=file)
+    if "watermark" in ctx.state:
+        print(f"\nwatermark ({ctx.out / 'wm'}, test views):", file=file)
+        print(ctx.state["watermark"]["table"], file=file)

@@ -1,4 +1,8 @@
-"""``mnerf evaluate``: PSNR / SSIM / LPIPS of a run's renders on a split (``RUN/eval-<split>.json``)."""
+"""``mnerf evaluate``: PSNR / SSIM / LPIPS of a run's renders on a split (``RUN/eval-<split>.json``).
+
+On a watermarked run (``mnerf embed``) it evaluates every ID instead (``wm_eval.evaluate_watermarked_run``:
+bit accuracy, identification, quality against the ground truth and the clean model) and prints the table.
+"""
 
 from __future__ import annotations
 
@@ -9,11 +13,13 @@ import time
 from pathlib import Path
 
 NAME = "evaluate"
-HELP = "Evaluate a fitted run on a split (PSNR, SSIM, LPIPS); writes RUN/eval-<split>.json."
+HELP = ("Evaluate a fitted run on a split (PSNR, SSIM, LPIPS), or a watermarked run (also bit accuracy and "
+        "identification of every ID); writes RUN/eval-<split>.json.")  # fmt: skip
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--run", type=Path, required=True, help="run directory written by mnerf fit")
+    parser.add_argument("--run", type=Path, required=True,
+                        help="run directory written by mnerf fit or mnerf embed")  # fmt: skip
     parser.add_argument("--split", default="test", help="test | val | train (default test)")
     parser.add_argument(
         "--data", type=Path, help="scene directory holding the split (default: the run's data)"
@@ -32,6 +38,9 @@ def run(args: argparse.Namespace) -> int:
     prepare_process()
     from mnerf_jax import run as runs
 
+    marker = runs.read_marker(args.run) if args.run.is_dir() else None
+    if marker is not None and marker.get("kind") == runs.WATERMARK_KIND:
+        return evaluate_watermarked(args)
     loaded = runs.load_run(args.run)
     split = loaded.load_scene(args.data, splits=(args.split,)).split(args.split)
     n = len(runs.view_indices(len(split), args.views))
@@ -62,4 +71,21 @@ def run(args: argparse.Namespace) -> int:
     runs.write_json_atomic(path, result)
     summary = {k: v for k, v in result.items() if k not in ("per_view", "view_names")}
     print(json.dumps(summary, sort_keys=True))
+    return 0
+
+
+def evaluate_watermarked(args: argparse.Namespace) -> int:
+    """Every ID of a watermarked run on ``args.split``: writes ``RUN/eval-<split>.json`` (and the PNGs it
+    decodes, ``RUN/eval-<split>/id<K>/``), prints the summary table."""
+    from mnerf_jax import report, wm_eval
+
+    t0 = time.perf_counter()
+    result = wm_eval.evaluate_watermarked_run(
+        args.run, args.split, args.data, max_views=args.views or None, lpips_net=args.lpips,
+        progress=not args.quiet,
+    )  # fmt: skip
+    print(report.format_table(result))
+    path = Path(args.run) / f"eval-{args.split}.json"
+    print(f"mnerf evaluate: {result['num_ids']} IDs × {result['views']} views in "
+          f"{time.perf_counter() - t0:.1f} s -> {path}")  # fmt: skip
     return 0

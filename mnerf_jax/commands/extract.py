@@ -1,18 +1,24 @@
-"""``mnerf extract``: decode the watermark bits of image files."""
+"""``mnerf extract``: decode the watermark bits of image files, or identify their watermark ID with a
+watermarked run's keys and decoder (best-matching key, bit accuracy, binomial p-value)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 NAME = "extract"
-HELP = "Decode the watermark bits of images with a HiDDeN decoder (default: the shipped 16-bit one)."
+HELP = ("Decode the watermark bits of images with a HiDDeN decoder (default: the shipped 16-bit one), or "
+        "with --run WMRUN identify each image's watermark ID (bit accuracy, binomial p-value).")  # fmt: skip
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", nargs="+", type=Path, metavar="IMAGE", help="image files")
-    parser.add_argument(
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--run", type=Path, default=None, metavar="WMRUN",
+                        help="watermarked run (mnerf embed): decode with its decoder, match its keys")
+    source.add_argument(
         "--decoder",
         type=Path,
         default=None,
@@ -24,6 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="message length: picks the shipped decoder (16 or 48), or checks --decoder",
     )
+    parser.add_argument("--threshold", type=float, default=None, metavar="P",
+                        help="with --run: claim an ID only when its Bonferroni-corrected binomial p-value "
+                             "is below P (default: the run's watermark.id_threshold, 1e-3 unless set)")
     parser.add_argument("--batch", type=int, default=32, help="images per decoder call (32)")
     parser.add_argument("--json", action="store_true", help="one JSON object per image instead of text")
 
@@ -46,7 +55,39 @@ def extract_records(args: argparse.Namespace) -> tuple[list[dict], object]:
     return records, decoder
 
 
+def identification_line(record: dict[str, Any]) -> str:
+    """One record of ``wm_eval.identify_images`` as text: the claimed ID or "no watermark", the best match's
+    bit accuracy and its corrected p-value."""
+    figures = (f"best ID {record['best_id']}, bit accuracy {record['bit_accuracy']:.2%}, "
+               f"p = {record['p_corrected']:.3g} (uncorrected {record['p_value']:.3g})")  # fmt: skip
+    if record["id"] < 0:
+        why = "tie between keys" if record["best_id"] < 0 else f"p ≥ {record['threshold']:g}"
+        return f"no watermark ({why}; {figures})"
+    return f"ID {record['id']}  ({figures})"
+
+
+def run_identify(args: argparse.Namespace) -> int:
+    """``--run WMRUN``: the ID of each image (``wm_eval.identify_images``)."""
+    from mnerf_jax import wm_eval
+    from mnerf_jax.errors import MnerfError
+
+    if args.bits is not None:
+        raise MnerfError("--bits applies to --decoder or the shipped decoders, not --run (the run's decoder "
+                         "fixes the message length)")  # fmt: skip
+    records = wm_eval.identify_images(args.run, args.images, args.threshold, args.batch)
+    if args.json:
+        for record in records:
+            print(json.dumps({**record, "run": str(args.run)}))
+        return 0
+    width = max(len(r["image"]) for r in records)
+    for record in records:
+        print(f"{record['image']:<{width}}  {identification_line(record)}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.run is not None:
+        return run_identify(args)
     records, decoder = extract_records(args)
     if args.json:
         for record in records:

@@ -10,13 +10,17 @@ from typing import Any
 import numpy as np
 
 NAME = "render"
-HELP = "Render a fitted run: the views of a split, or an orbit/spiral camera path with a GIF or MP4."
+HELP = ("Render a fitted or watermarked run: the views of a split, or an orbit/spiral camera path with a GIF "
+        "or MP4; --id K picks the watermark ID of a watermarked run.")  # fmt: skip
 
 VIDEO_FORMATS = ("gif", "mp4")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--run", type=Path, required=True, help="run directory written by mnerf fit")
+    parser.add_argument("--run", type=Path, required=True,
+                        help="run directory written by mnerf fit or mnerf embed")  # fmt: skip
+    parser.add_argument("--id", type=int, default=None, metavar="K",
+                        help="watermark ID to render, 0..N-1 (watermarked runs only; default 0)")  # fmt: skip
     parser.add_argument("--split", default="test", help="test | train | val | path (default test)")
     parser.add_argument("--out", type=Path, required=True, help="output directory for the PNGs (and video)")
     parser.add_argument("--data", type=Path, help="scene directory (default: the one the run was fitted on)")
@@ -123,13 +127,26 @@ def render_to(run: Any, split_name: str, out: Path, *, data: Path | None = None,
     return result
 
 
+def load_for_render(run_dir: Path, wm_id: int | None = None) -> Any:
+    """``run.load_run(run_dir)``, set to render watermark ID ``wm_id`` when given.
+
+    MnerfError (nothing written) for an ID on a run without watermarks or outside ``[0, N)``.
+    """
+    from mnerf_jax import run as runs
+
+    loaded = runs.load_run(run_dir)
+    if wm_id is None:
+        return loaded
+    from mnerf_jax import embed
+
+    return embed.with_id(loaded, wm_id)
+
+
 def run(args: argparse.Namespace) -> int:
     from mnerf_jax.commands.fit import prepare_process
 
     prepare_process()
-    from mnerf_jax import run as runs
-
-    loaded = runs.load_run(args.run)
+    loaded = load_for_render(args.run, args.id)
     result = render_to(
         loaded,
         args.split,
@@ -143,5 +160,7 @@ def run(args: argparse.Namespace) -> int:
         quiet=args.quiet,
     )
     extra = f" and {result['video']}" if "video" in result else ""
-    print(f"mnerf render: {result['views']} images{extra} -> {args.out}")
+    wm_id = loaded.extras.get("id")
+    which = f" of watermark ID {wm_id}" if wm_id is not None else ""
+    print(f"mnerf render: {result['views']} images{extra}{which} -> {args.out}")
     return 0

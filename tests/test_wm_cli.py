@@ -1,0 +1,209 @@
+"""The commands on watermarked runs (the `tiny` fixture of conftest.py): ``load_run`` from a fresh process,
+``render --id``, ``evaluate``, ``extract --run`` and the demo's watermark step."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from mnerf_jax.errors import MnerfError
+
+if TYPE_CHECKING:
+    from conftest import TinyRuns
+
+EVAL_KEYS = (
+    "bit_accuracy_mean", "bit_accuracy_min", "bit_accuracy_png_mean", "psnr", "psnr_clean_model", "ssim",
+    "lpips", "identification_accuracy", "clean_bit_accuracy", "num_ids", "bits", "split", "views",
+)  # fmt: skip
+
+
+def _one_error_line(err: str, needle: str) -> None:
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("mnerf: error:") and needle in lines[0], err
+
+
+@pytest.fixture(scope="module")
+def id_renders(tiny: TinyRuns, tmp_path_factory: pytest.TempPathFactory) -> dict[int, Path]:
+    """``mnerf render --run WMRUN --id K --views 2`` for both IDs: ``{K: folder of PNGs}``."""
+    from mnerf_jax import cli
+
+    root = tmp_path_factory.mktemp("renders")
+    for k in (0, 1):
+        code = cli.main(["render", "--run", str(tiny.wm), "--id", str(k), "--views", "2", "--out",
+                         str(root / f"id{k}"), "--quiet"])  # fmt: skip
+        assert code == 0
+    return {k: root / f"id{k}" for k in (0, 1)}
+
+
+def test_load_run_loads_a_watermarked_run_from_a_fresh_process(tiny: TinyRuns) -> None:
+    # Only mnerf_jax.run is imported: the loader of the "multinerf" kind must register itself on demand.
+    script = (
+        "import sys\n"
+        "from mnerf_jax import run\n"
+        "assert 'mnerf_jax.embed' not in sys.modules\n"
+        "loaded = run.load_run(sys.argv[1])\n"
+        "print(loaded.kind, loaded.step, loaded.extras['num_ids'], loaded.extras['id'])\n"
+    )
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    done = subprocess.run([sys.executable, "-c", script, str(tiny.wm)], capture_output=True, text=True,
+                          env=env, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["multinerf", "80", "2", "0"]
+
+
+def test_render_with_id(tiny: TinyRuns, id_renders: dict[int, Path], tmp_path: Path, mnerf) -> None:
+    from mnerf_jax import embed
+    from mnerf_jax import run as runs
+
+    names = sorted(p.name for p in id_renders[1].iterdir())
+    assert names == ["r_0.png", "r_5.png"]
+    a, b = (iio.imread(id_renders[k] / "r_0.png").astype(int) for k in (0, 1))
+    assert np.abs(a - b).max() > 2  # the IDs render differently
+    # The PNG is the library's render of that ID, rounded to 8 bits.
+    loaded = runs.load_run(tiny.wm)
+    cameras = loaded.load_scene(splits=("test",)).split("test").cameras
+    expected = embed.render_with_id(loaded, 1, cameras, [0])[0]
+    assert np.abs(b - np.round(np.clip(expected, 0, 1) * 255)).max() <= 1
+    # Without --id a watermarked run renders ID 0, and says so.
+    code, out, _ = mnerf("render", "--run", tiny.wm, "--views", "1", "--out", tmp_path / "default", "--quiet")
+    assert code == 0 and "watermark ID 0" in out
+    np.testing.assert_array_equal(iio.imread(tmp_path / "default" / "r_0.png"), a)
+
+
+def test_render_id_errors_are_one_line_and_write_nothing(tiny: TinyRuns, tmp_path: Path, mnerf) -> None:
+    cases = [
+        (tiny.wm, "2", "outside [0, 2)"),
+        (tiny.wm, "-1", "outside [0, 2)"),
+        (tiny.fit, "0", "not a watermarked run"),
+    ]
+    for i, (run_dir, k, message) in enumerate(cases):
+        out = tmp_path / f"o{i}"
+        code, _, err = mnerf("render", "--run", run_dir, "--id", k, "--out", out, "--quiet")
+        assert code == 2, err
+        _one_error_line(err, message)
+        assert not out.exists()
+
+
+def test_evaluate_watermarked_run(tiny: TinyRuns, tmp_path: Path, mnerf) -> None:
+    wm = tmp_path / "wm"  # a copy without earlier evaluations: the evaluation writes into the run
+    shutil.copytree(tiny.wm, wm, ignore=shutil.ignore_patterns("eval-*"))
+    code, out, _ = mnerf("evaluate", "--run", wm, "--views", "2", "--quiet")
+    assert code == 0
+    saved = json.loads((wm / "eval-test.json").read_text())
+    for key in EVAL_KEYS:
+        assert key in saved, key
+    assert saved["views"] == 2 and saved["num_ids"] == 2 and saved["bits"] == 8 and saved["split"] == "test"
+    assert saved["psnr_clean_model"] is not None and 0.0 <= saved["bit_accuracy_min"] <= 1.0
+    # The table of report.format_table, then where the file went.
+    assert "bit accuracy, float render (mean over IDs)" in out and "IDs × bits" in out
+    assert f"{saved['psnr']:.2f}" in out and str(wm / "eval-test.json") in out
+    assert len(list((wm / "eval-test").glob("id*/*.png"))) == 2 * 2
+
+
+def test_extract_identifies_the_id_of_rendered_images(tiny: TinyRuns, id_renders: dict[int, Path],
+                                                      mnerf) -> None:  # fmt: skip
+    from mnerf_jax import wm_eval
+    from mnerf_jax.commands.extract import identification_line
+
+    paths = sorted(id_renders[1].glob("*.png")) + sorted(id_renders[0].glob("*.png"))
+    code, out, _ = mnerf("extract", "--run", tiny.wm, *paths, "--json")
+    assert code == 0
+    records = [json.loads(line) for line in out.splitlines()]
+    assert [r["image"] for r in records] == [str(p) for p in paths]
+    assert [r["best_id"] for r in records[:2]] == [1, 1]  # ID 1 carries the better-embedded message
+    library = wm_eval.identify_images(tiny.wm, paths)
+    assert [{k: v for k, v in r.items() if k != "run"} for r in records] == library
+    for r in records:
+        assert 0.0 < r["p_value"] <= r["p_corrected"] <= 1.0 and len(r["bits"]) == 8
+        # 2 IDs × 8 bits: the smallest corrected p-value is 2/256 > 1e-3, so nothing is claimed.
+        assert r["id"] == -1 and r["threshold"] == 1e-3
+    code, out, _ = mnerf("extract", "--run", tiny.wm, *paths)
+    lines = out.splitlines()
+    assert code == 0 and len(lines) == 4 and all("no watermark (p ≥ 0.001; best ID" in line for line in lines)
+    # With a looser threshold an image whose bits agree enough with its key is claimed.
+    code, out, _ = mnerf("extract", "--run", tiny.wm, *paths, "--threshold", "0.5", "--json")
+    loose = [json.loads(line) for line in out.splitlines()]
+    for r in loose:
+        assert r["id"] == (r["best_id"] if r["p_corrected"] < 0.5 else -1)
+        assert identification_line(r).startswith(f"ID {r['id']}" if r["id"] >= 0 else "no watermark")
+    assert any(r["id"] == 1 for r in loose[:2])
+
+
+def test_extract_errors_and_the_decoder_mode(tiny: TinyRuns, id_renders: dict[int, Path], tmp_path: Path,
+                                             mnerf) -> None:  # fmt: skip
+    png = sorted(id_renders[1].glob("*.png"))[0]
+    gray = tmp_path / "gray.png"
+    iio.imwrite(gray, np.zeros((32, 32), np.uint8))
+    for argv, message in [
+        ((gray,), "RGB"),
+        ((tmp_path / "absent.png",), "does not exist"),
+        ((png, "--bits", "8"), "--bits"),
+    ]:
+        code, _, err = mnerf("extract", "--run", tiny.wm, *argv)
+        assert code == 2
+        _one_error_line(err, message)
+    code, _, err = mnerf("extract", "--run", tiny.fit, png)
+    assert code == 2
+    _one_error_line(err, "'tensorf' run without watermarks")
+    # --decoder FILE still decodes bits only.
+    code, out, _ = mnerf("extract", "--decoder", tiny.decoder, png)
+    assert code == 0 and out.split()[0] == str(png) and len(out.split()[1]) == 8
+    # --run and --decoder exclude each other (argparse).
+    with pytest.raises(SystemExit):
+        mnerf("extract", "--run", tiny.wm, "--decoder", tiny.decoder, png)
+
+
+# ------------------------------------------------------------------------------------ the demo's step
+
+
+def test_demo_finds_or_skips_its_decoder(tiny: TinyRuns, tmp_path: Path, monkeypatch, capsys) -> None:
+    from mnerf_jax import decoder
+    from mnerf_jax.commands import demo
+
+    monkeypatch.setattr(decoder, "shipped_decoder_path", lambda bits: tmp_path / f"absent_l{bits}.npz")
+    path, reason = demo.find_decoder(None)
+    assert path is None and "absent_l16.npz" in reason and "--decoder FILE" in reason
+    ctx = demo.DemoContext(out=tmp_path / "demo", config=None, no_decoder_reason=reason)
+    demo.step_watermark(ctx)
+    err = capsys.readouterr().err.strip()
+    assert err == f"mnerf demo: watermark step skipped: {reason}"
+    assert ctx.rows == [("watermark", "skipped (no 16-bit decoder)")] and not (tmp_path / "demo").exists()
+    # A --decoder of the wrong length is refused before the demo writes anything.
+    with pytest.raises(MnerfError, match="16 bits are expected"):
+        demo.find_decoder(tiny.decoder)
+    shipped = tmp_path / "absent_l16.npz"
+    shutil.copy(tiny.decoder, shipped)  # (any file at the shipped path is used; its length is checked later)
+    assert demo.find_decoder(None) == (shipped, "")
+
+
+def test_demo_watermark_step_at_tiny_size(tiny: TinyRuns, tmp_path: Path, make_decoder, capsys) -> None:
+    from mnerf_jax.commands import demo
+
+    out = tmp_path / "demo"
+    shutil.copytree(tiny.fit, out / "run")
+    dec16 = make_decoder(tmp_path / "dec16.npz", 16)
+    path, _ = demo.find_decoder(dec16)
+    # One phase-1 step: the step's plumbing, not the embedding's quality (tests/test_embed.py has that).
+    overrides = (*tiny.embed_overrides, "watermark.phase1_steps=1", "watermark.phase2_steps=0")
+    ctx = demo.DemoContext(out=out, config=None, quiet=True, decoder=path, embed_overrides=overrides)
+    demo.step_watermark(ctx)
+    for name in ("report.md", "renders.png", "bit_accuracy.png"):
+        assert (out / "report" / name).is_file(), name
+    saved = json.loads((out / "wm" / "eval-test.json").read_text())
+    assert saved["num_ids"] == 4 and saved["bits"] == 16 and saved["views"] == 6
+    assert json.loads((out / "wm" / "embed.json").read_text())["steps_done"] == 1
+    assert [name for name, _ in ctx.rows] == ["watermark", "watermark report"]
+    capsys.readouterr()
+    demo.print_summary(ctx)
+    printed = capsys.readouterr().out
+    assert "4 IDs × 16 bits" in printed and "IDs × bits" in printed and "4 × 16" in printed
+    assert printed.count("\n  3  ") == 1  # the per-ID table lists ID 3
