@@ -328,6 +328,40 @@ def load_decoder(path: str | Path, expect_bits: int | None = None) -> LoadedDeco
     return LoadedDecoder(variables=variables, bits=bits, wavelet=wavelet, metadata=meta, path=path)
 
 
+FRESH = "fresh"  # ``--decoder fresh``: see :func:`fresh_decoder`
+
+
+def fresh_decoder(
+    bits: int, images: np.ndarray, seed: int = 0, wavelet: str = "bior4.4", max_images: int = 64
+) -> LoadedDecoder:
+    """A random-init decoder whitened on ``images [N, H, W, 3]`` in [0, 1] (up to ``max_images`` of them).
+
+    For embedding when no trained decoder is at hand: MultiNeRF's phase 2 trains the decoder with the field,
+    so the pair can agree on a code for this one scene. Whitening on the scene's own images centres the
+    logits of its unwatermarked renders (random bits, near 50 % accuracy). Such a decoder has never seen an
+    attack: its robustness is what phase 2's augmentations give it, no more.
+    """
+    images = np.asarray(images, np.float32)
+    if images.ndim != 4 or images.shape[-1] != 3 or len(images) == 0:
+        raise MnerfError(f"a fresh decoder is whitened on RGB images [N, H, W, 3], got shape {images.shape}")
+    if len(images) < max_images:
+        # A scene with few views: its flipped images count too (whitening needs more samples than bits).
+        images = np.concatenate([images, images[:, ::-1], images[:, :, ::-1], images[:, ::-1, ::-1]])
+    images = images[:max_images]
+    if len(images) <= bits:
+        raise MnerfError(f"a fresh {bits}-bit decoder needs more than {bits // 4} training images")
+    variables = init_decoder(jax.random.PRNGKey(seed), bits)
+    batches = [dwt.ll2(jnp.asarray(images[i : i + 16]), wavelet) for i in range(0, len(images), 16)]
+    variables = fit_whitening(variables, batches)
+    variables = jax.tree.map(lambda x: np.asarray(x, np.float32), variables)
+    meta = {
+        "format": FORMAT, "version": FORMAT_VERSION, "bits": bits, "wavelet": wavelet,
+        "fresh": {"seed": seed, "whitening_images": len(images)},
+        "fingerprint": fingerprint(variables),
+    }  # fmt: skip
+    return LoadedDecoder(variables, bits, wavelet, meta, Path(FRESH))
+
+
 def shipped_decoder_path(bits: int) -> Path:
     """Path of the decoder shipped inside the package for ``bits`` (16 or 48)."""
     if bits not in SHIPPED_BITS:

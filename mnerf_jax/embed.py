@@ -812,7 +812,8 @@ def embed(
         ``decoder.npz`` (the decoder as fine-tuned with the field), ``embed.json`` (progress).
       num_ids, bits: ``N`` IDs with ``L``-bit messages (the decoder must read ``L`` bits).
       preset, overrides: the watermark config (``--config``, ``--set``).
-      decoder_path: the decoder to start from (default: the shipped one for ``bits``).
+      decoder_path: the decoder to start from (default: the shipped one for ``bits``); ``"fresh"``: a
+        random-init decoder whitened on the scene's training images (``decoder.fresh_decoder``).
       data_path: the scene (default: the one the source run recorded).
       resume: continue from ``out_dir``'s latest checkpoint (a fresh start when there is none).
       stop_at: stop after this many steps in all (a checkpoint is written there).
@@ -822,7 +823,8 @@ def embed(
     source = load_source(source_run)
     config = resolve_config(source, preset, overrides, num_ids, bits)
     cfg = config.watermark
-    loaded = load_decoder_for(bits, decoder_path)
+    fresh = decoder_path is not None and str(decoder_path) == decoder_lib.FRESH
+    loaded = None if fresh else load_decoder_for(bits, decoder_path)
     resuming = runs.prepare_output(out, config, resume=resume, kind=WM_KIND) and _has_checkpoints(out)
     keys = None
     if resuming:
@@ -832,6 +834,9 @@ def embed(
     scene = source.load_scene(data_path, splits=("train",))
     split = scene.split("train")
     check_rgb_images(split.images, f"{data_path or source.data_path or 'procedural scene'} (train split)")
+    if loaded is None:
+        loaded = decoder_lib.fresh_decoder(bits, split.images, seed=cfg.seed, wavelet=cfg.wavelet)
+    decoder_source = decoder_lib.FRESH if fresh else str(Path(loaded.path).resolve())
     height, width = int(split.images.shape[1]), int(split.images.shape[2])
     layout = patch_layout(height, width, cfg.patch_size)
     if cfg.lambda_ssim and layout.size < 11:
@@ -872,7 +877,7 @@ def embed(
             data = data_path if data_path is not None else source.data_path
             runs.write_run_files(out, config, data=data, kind=WM_KIND, extra={
                 "source_run": str(source.run_dir.resolve()), "source_step": source.step, "num_ids": num_ids,
-                "bits": bits, "variant": cfg.variant, "decoder_source": str(Path(loaded.path).resolve()),
+                "bits": bits, "variant": cfg.variant, "decoder_source": decoder_source,
                 "decoder_source_fingerprint": loaded.fingerprint,
             })  # fmt: skip
             keys_lib.save_keys(out, keys)

@@ -165,18 +165,14 @@ def test_extract_errors_and_the_decoder_mode(tiny: TinyRuns, id_renders: dict[in
 # ------------------------------------------------------------------------------------ the demo's step
 
 
-def test_demo_finds_or_skips_its_decoder(tiny: TinyRuns, tmp_path: Path, monkeypatch, capsys) -> None:
+def test_demo_finds_its_decoder(tiny: TinyRuns, tmp_path: Path, monkeypatch) -> None:
     from mnerf_jax import decoder
     from mnerf_jax.commands import demo
 
     monkeypatch.setattr(decoder, "shipped_decoder_path", lambda bits: tmp_path / f"absent_l{bits}.npz")
-    path, reason = demo.find_decoder(None)
-    assert path is None and "absent_l16.npz" in reason and "--decoder FILE" in reason
-    ctx = demo.DemoContext(out=tmp_path / "demo", config=None, no_decoder_reason=reason)
-    demo.step_watermark(ctx)
-    err = capsys.readouterr().err.strip()
-    assert err == f"mnerf demo: watermark step skipped: {reason}"
-    assert ctx.rows == [("watermark", "skipped (no 16-bit decoder)")] and not (tmp_path / "demo").exists()
+    path, note = demo.find_decoder(None)
+    assert str(path) == decoder.FRESH and "absent_l16.npz" in note and "--decoder FILE" in note
+    assert demo.find_decoder(Path(decoder.FRESH)) == (Path(decoder.FRESH), "")
     # A --decoder of the wrong length is refused before the demo writes anything.
     with pytest.raises(MnerfError, match="16 bits are expected"):
         demo.find_decoder(tiny.decoder)
@@ -185,13 +181,18 @@ def test_demo_finds_or_skips_its_decoder(tiny: TinyRuns, tmp_path: Path, monkeyp
     assert demo.find_decoder(None) == (shipped, "")
 
 
-def test_demo_watermark_step_at_tiny_size(tiny: TinyRuns, tmp_path: Path, make_decoder, capsys) -> None:
+@pytest.mark.parametrize("fresh", [False, True])
+def test_demo_watermark_step_at_tiny_size(
+    tiny: TinyRuns, tmp_path: Path, make_decoder, capsys, fresh: bool
+) -> None:
+    from mnerf_jax import decoder
     from mnerf_jax.commands import demo
 
     out = tmp_path / "demo"
     shutil.copytree(tiny.fit, out / "run")
-    dec16 = make_decoder(tmp_path / "dec16.npz", 16)
-    path, _ = demo.find_decoder(dec16)
+    path, _ = demo.find_decoder(
+        Path(decoder.FRESH) if fresh else make_decoder(tmp_path / "dec16.npz", 16)
+    )
     # One phase-1 step: the step's plumbing, not the embedding's quality (tests/test_embed.py has that).
     overrides = (*tiny.embed_overrides, "watermark.phase1_steps=1", "watermark.phase2_steps=0")
     ctx = demo.DemoContext(out=out, config=None, quiet=True, decoder=path, embed_overrides=overrides)

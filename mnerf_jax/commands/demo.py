@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=48, help="frames of the orbit GIF (default 48)")
     parser.add_argument("--decoder", type=Path, default=None, metavar="FILE",
                         help=f"{WM_BITS}-bit decoder for the watermark step (default: the shipped one; "
-                             "without either the step is skipped)")  # fmt: skip
+                             "without either, a fresh decoder trained with the field: 'fresh')")  # fmt: skip
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -51,7 +51,7 @@ class DemoContext:
     frames: int = 48
     quiet: bool = False
     decoder: Path | None = None
-    no_decoder_reason: str = ""
+    decoder_note: str = ""  # printed when the watermark step starts (why a fresh decoder is used)
     # --set items for the embedding only (the demo's own --set reach it already, through the run's config).
     embed_overrides: tuple[str, ...] = ()
     rows: list[tuple[str, str]] = dataclasses.field(default_factory=list)
@@ -124,31 +124,33 @@ def step_render_orbit(ctx: DemoContext) -> None:
     ctx.row("orbit", f"{result['views']} frames, {ctx.out / 'orbit' / result['video']}")
 
 
-def find_decoder(path: Path | None) -> tuple[Path | None, str]:
-    """``(decoder file, "")`` for the watermark step, or ``(None, why there is none)``.
+def find_decoder(path: Path | None) -> tuple[Path, str]:
+    """``(decoder to start the watermark step from, a note to print or "")``.
 
     ``path`` (``--decoder``) is checked at once (MnerfError: missing, corrupt, not ``WM_BITS`` bits), so a
-    bad file stops the demo before it writes anything; without it the shipped decoder is used if present.
+    bad file stops the demo before it writes anything; without it the shipped decoder is used if present,
+    else ``decoder.FRESH`` (a random-init decoder that phase 2 trains with the field) and a note saying so.
     """
     from mnerf_jax import decoder as decoder_lib
 
     if path is not None:
-        decoder_lib.load_decoder(path, expect_bits=WM_BITS)
+        if str(path) != decoder_lib.FRESH:
+            decoder_lib.load_decoder(path, expect_bits=WM_BITS)
         return path, ""
     shipped = decoder_lib.shipped_decoder_path(WM_BITS)
     if shipped.is_file():
         return shipped, ""
-    return None, (f"no {WM_BITS}-bit decoder is shipped ({shipped} is missing); pass --decoder FILE "
-                  f"(make one with `mnerf train-decoder --bits {WM_BITS} --out DIR`)")  # fmt: skip
+    note = (f"no {WM_BITS}-bit decoder is shipped ({shipped} is missing): starting from a fresh decoder "
+            "trained with the field in phase 2 (--decoder FILE to start from your own)")  # fmt: skip
+    return Path(decoder_lib.FRESH), note
 
 
 def step_watermark(ctx: DemoContext) -> None:
     """Embed ``WM_IDS × WM_BITS`` into the fitted run (``out/wm``), evaluate it, write ``out/report``."""
-    if ctx.decoder is None:
-        print(f"mnerf demo: watermark step skipped: {ctx.no_decoder_reason}", file=sys.stderr)
-        ctx.row("watermark", f"skipped (no {WM_BITS}-bit decoder)")
-        return
     from mnerf_jax import report
+
+    if ctx.decoder_note:
+        print(f"mnerf demo: {ctx.decoder_note}", file=sys.stderr)
 
     result = report.demo_watermark(ctx.run_dir, ctx.out, num_ids=WM_IDS, bits=WM_BITS,
                                    overrides=ctx.embed_overrides, decoder_path=ctx.decoder,
@@ -191,9 +193,9 @@ def run(args: argparse.Namespace) -> int:
     from mnerf_jax.config import load_config
 
     config = load_config(DEMO_CONFIG, args.set)
-    decoder, reason = find_decoder(args.decoder)
+    decoder, note = find_decoder(args.decoder)
     ctx = DemoContext(out=args.out, config=config, frames=args.frames, quiet=args.quiet, decoder=decoder,
-                      no_decoder_reason=reason)  # fmt: skip
+                      decoder_note=note)  # fmt: skip
     prepare_out(ctx)
     t0 = time.perf_counter()
     for i, (title, step) in enumerate(STEPS, 1):

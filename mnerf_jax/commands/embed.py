@@ -23,7 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config field, e.g. --set watermark.phase2_steps=400 (repeatable)")
     parser.add_argument("--decoder", type=Path, default=None, metavar="FILE",
-                        help="decoder to start from (default: the shipped decoder for --bits)")  # fmt: skip
+                        help="decoder to start from (default: the shipped decoder for --bits); 'fresh': "
+                             "a random-init decoder whitened on the scene's training images, trained in "
+                             "phase 2")  # fmt: skip
     parser.add_argument("--data", type=Path, default=None, help="scene directory (default: the fitted run's)")
     parser.add_argument("--resume", action="store_true", help="continue the embedding in --out")
     parser.add_argument("--steps", type=int, default=None, metavar="K",
