@@ -18,7 +18,7 @@ slice of a permutation seeded by ``(seed, ray-set start, epoch)``, so a resumed 
 uninterrupted one exactly.
 
 Static sample budgets: ``render_rays`` evaluates density and colour in fixed-size buffers (static
-shapes under jit; each new size is a compilation). ``SampleBudgets`` sizes them at the start of each
+shapes under jit; each new size is a compilation). ``budgets.SampleBudgets`` sizes them at the start of each
 phase (density predicted from the geometry, colour scaled from the last step), grows them when a
 step's counts exceed them (that step dropped samples: it is discarded and redone) and shrinks them
 at a few refit points. Steps run pipelined: step k+1 is dispatched before step k's counts are read,
@@ -42,6 +42,7 @@ import numpy as np
 import optax
 
 from mnerf_jax import field, grids, render
+from mnerf_jax.budgets import SampleBudgets, estimate_density_count, refit_due
 from mnerf_jax.checkpoint import CheckpointStore, check_compatible, config_fingerprint
 from mnerf_jax.config import Config
 from mnerf_jax.data import Scene, all_rays
@@ -249,159 +250,6 @@ def train_step(
     new_state = state.replace(params=params, opt_state=opt_state, step=state.step + 1)
     aux["psnr"] = -10.0 * jnp.log10(jnp.maximum(aux["mse"], 1e-12))
     return new_state, aux
-
-
-# --------------------------------------------------------------------------------------------------
-# Sample budgets
-# --------------------------------------------------------------------------------------------------
-
-
-def ladder(needed: float, minimum: int = 1024) -> int:
-    """Smallest size ``>= needed`` on a ladder of 2 sizes per octave (2^k and 1.5 * 2^k).
-
-    Few distinct sizes keep recompilations rare; at most a third of a buffer is slack.
-    """
-    return render.ladder_budget(needed, steps_per_octave=2, minimum=minimum)
-
-
-@dataclasses.dataclass
-class SampleBudgets:
-    """Density / colour buffer sizes of the train step.
-
-    Every new size costs a compilation (seconds on a CPU), so sizes change rarely: set at the start
-    of a phase (new grid or alpha mask) from estimates, grown after an overflow (the step is redone),
-    shrunk at a few refit points when at most half used and the phase has steps left to profit.
-    A refit decided from the counts of step k takes effect at step k + 2 (step k + 1 may already be
-    running: the loop is pipelined), whether or not the loop paused in between. All of it is a
-    function of the observed counts and is checkpointed, so a resumed run compiles and computes
-    exactly as the uninterrupted one.
-    """
-
-    density: int
-    colour: int
-    peak_density: int = 0
-    peak_colour: int = 0
-    next_step: int = -1  # a refit (next_density, next_colour) takes effect at this step; -1: none
-    next_density: int = 0
-    next_colour: int = 0
-    last_colour: int = 0  # colour count of the latest applied step ...
-    last_samples: int = 0  # ... and its samples per ray (to scale it to a new grid)
-    headroom: float = 1.25  # slack over the largest count seen when a budget is refitted
-    growth: float = 1.5  # after an overflow: the count times this (counts rise fast early on)
-    shrink_below: float = 0.5  # refit only budgets used below this fraction
-    min_remaining: int = 30  # ... and only with at least this many steps left in the phase
-
-    def for_step(self, step: int) -> tuple[int, int]:
-        """``(density, colour)`` budgets for dispatching step ``step`` (no side effects).
-
-        Colour is only evaluated at samples that had a density, so its budget never exceeds that.
-        """
-        if 0 <= self.next_step <= step:
-            return self.next_density, min(self.next_colour, self.next_density)
-        return self.density, min(self.colour, self.density)
-
-    def start_phase(self, density_estimate: float, colour_estimate: float, cap: int) -> None:
-        """Budgets for a new phase from estimated counts; forget peaks and pending refits."""
-        self.density = min(cap, ladder(density_estimate))
-        self.colour = min(cap, ladder(colour_estimate))
-        self.peak_density = self.peak_colour = 0
-        self.next_step = -1
-
-    def colour_estimate(self, n_samples: int) -> float | None:
-        """The latest colour count scaled to ``n_samples`` per ray, with headroom (None: none seen)."""
-        if self.last_samples <= 0:
-            return None
-        return self.last_colour * n_samples / self.last_samples * self.headroom
-
-    def observe(self, step: int, density_count: int, colour_count: int, n_samples: int, cap: int) -> bool:
-        """Record the counts of step ``step``; on overflow grow the budgets and return True (redo it)."""
-        used = self.for_step(step)
-        if density_count > used[0] or colour_count > used[1]:
-            if density_count > used[0]:
-                self.density = min(cap, max(self.density, ladder(density_count * self.growth)))
-            if colour_count > used[1]:
-                self.colour = min(cap, max(self.colour, ladder(colour_count * self.growth)))
-            self.next_step = -1
-            return True
-        self.peak_density = max(self.peak_density, density_count)
-        self.peak_colour = max(self.peak_colour, colour_count)
-        self.last_colour, self.last_samples = colour_count, n_samples
-        if 0 <= self.next_step <= step + 1:  # the refit is in use from the next step on: commit it
-            self.density, self.colour, self.next_step = self.next_density, self.next_colour, -1
-        return False
-
-    def schedule_refit(self, effective_step: int, cap: int, remaining: int) -> None:
-        """From ``effective_step`` on, shrink budgets whose peak use since the last refit is low.
-
-        ``remaining``: steps left in the phase; with fewer than ``min_remaining`` the compilation
-        would cost more than the smaller buffers save.
-        """
-        sizes = []
-        for name in ("density", "colour"):
-            peak, size = getattr(self, f"peak_{name}"), getattr(self, name)
-            if peak and peak * self.headroom < self.shrink_below * size and remaining >= self.min_remaining:
-                size = min(cap, ladder(peak * self.headroom))
-            sizes.append(size)
-        self.peak_density = self.peak_colour = 0
-        if tuple(sizes) != (self.density, self.colour):
-            self.next_step, self.next_density, self.next_colour = effective_step, sizes[0], sizes[1]
-
-    def to_dict(self) -> dict[str, int]:
-        names = (
-            "density",
-            "colour",
-            "peak_density",
-            "peak_colour",
-            "next_step",
-            "next_density",
-            "next_colour",
-            "last_colour",
-            "last_samples",
-        )
-        return {name: getattr(self, name) for name in names}
-
-
-REFIT_AFTER = (8, 32, 100)  # steps into a phase at which budgets may shrink ...
-REFIT_EVERY = 250  # ... and then every this many steps
-
-
-def _refit_due(step: int, phase_start: int) -> bool:
-    """Whether budgets are refitted after ``step`` steps (a phase began at ``phase_start``)."""
-    local = step - phase_start
-    return local in REFIT_AFTER or (local > 0 and local % REFIT_EVERY == 0)
-
-
-@functools.partial(jax.jit, static_argnames=("n_samples",))
-def _valid_samples_per_ray(rays_o: Array, rays_d: Array, geometry: render.Geometry, key: Array,
-                           n_samples: int) -> Array:  # fmt: skip
-    """``[R]`` int32: training samples of each ray inside the aabb and the alpha mask (density count)."""
-    t, _, _ = render.sample_along_rays(rays_o, rays_d, geometry, key, n_samples)
-    xyz = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]
-    valid = render.inside_box(xyz, geometry.aabb) & render.alpha_mask_lookup(geometry, xyz)
-    return jnp.sum(valid, axis=-1, dtype=jnp.int32)
-
-
-def estimate_density_count(rays: RaySet, geometry: render.Geometry, batch: int, seed: int, salt: int,
-                           probe: int = 8192) -> float:  # fmt: skip
-    """A high quantile (mean + 4 sd) of a batch's density count, from ``probe`` random rays.
-
-    The count depends on the geometry and the rays only, not on the field, so this predicts the
-    density budget of a phase before its first step.
-    """
-    rng = np.random.default_rng([seed, 0xB0D6, salt])
-    idx = rng.choice(len(rays), size=min(probe, len(rays)), replace=False)
-    key = jax.random.fold_in(jax.random.key(seed), salt)
-    counts = np.asarray(
-        _valid_samples_per_ray(
-            jnp.asarray(rays.origins[idx]),
-            jnp.asarray(rays.directions[idx]),
-            geometry,
-            key,
-            n_samples=geometry.n_samples,
-        ),
-        np.float64,
-    )
-    return batch * counts.mean() + 4.0 * np.sqrt(batch) * counts.std() + 1.0
 
 
 # --------------------------------------------------------------------------------------------------
@@ -769,7 +617,7 @@ class _Trainer:
                 self.rays_done += self.batch
                 self.state = after
                 pending = None
-                if _refit_due(pk + 1, self.phase_start):
+                if refit_due(pk + 1, self.phase_start):
                     self.budgets.schedule_refit(pk + 2, self.cap, self.phase_end - (pk + 2))
                 on_step(pk, {name: float(v) for name, v in host.items()})
             if nxt is not None:
