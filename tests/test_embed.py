@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from mnerf_jax import deferred as D
 from mnerf_jax import dwt
 from mnerf_jax import embed as E
 from mnerf_jax.errors import MnerfError
@@ -80,7 +81,7 @@ def _patch_loss(rgb: jax.Array, target: jax.Array) -> jax.Array:
 
 @pytest.mark.parametrize("h,w,s", [(32, 32, 16), (20, 27, 8), (8, 8, 64), (17, 16, 16), (5, 9, 4)])
 def test_patch_layout_covers_every_pixel_once(h: int, w: int, s: int) -> None:
-    layout = E.patch_layout(h, w, s)
+    layout = D.patch_layout(h, w, s)
     size = min(s, h, w)
     assert layout.size == size and layout.index.shape[1] == size * size
     owned = np.zeros(h * w)
@@ -94,10 +95,10 @@ def test_patch_layout_covers_every_pixel_once(h: int, w: int, s: int) -> None:
 
 def test_assemble_inverts_gather() -> None:
     h, w = 11, 13
-    layout = E.patch_layout(h, w, 4)
+    layout = D.patch_layout(h, w, 4)
     image = jax.random.uniform(jax.random.PRNGKey(0), (h, w, 3))
     patches = image.reshape(-1, 3)[layout.index]
-    out = E.assemble(patches, jnp.asarray(layout.index), jnp.asarray(layout.owner), h, w)
+    out = D.assemble(patches, jnp.asarray(layout.index), jnp.asarray(layout.owner), h, w)
     np.testing.assert_allclose(np.asarray(out), np.asarray(image))
 
 
@@ -109,15 +110,15 @@ def _gradients(height: int, width: int, patch: int, use_patch_loss: bool = True)
     extra = {"w": jax.random.normal(jax.random.PRNGKey(2), (3, 4)), "b": jnp.zeros(4)}
     rays = _toy_rays(height, width)
     targets = jax.random.uniform(jax.random.PRNGKey(3), (height * width, 3))
-    layout = E.patch_layout(height, width, patch)
+    layout = D.patch_layout(height, width, patch)
     args = (jnp.asarray(layout.index), jnp.asarray(layout.owner), jax.random.PRNGKey(4), height, width)
     ploss = _patch_loss if use_patch_loss else None
     loss_d, _, image, g_params_d, g_extra_d = jax.jit(
-        lambda p, e: E.deferred_grad(_toy_render, _image_loss, ploss, p, e, rays, targets, *args[:3],
+        lambda p, e: D.deferred_grad(_toy_render, _image_loss, ploss, p, e, rays, targets, *args[:3],
                                      height, width)
     )(params, extra)
     (loss_r, _), (g_params_r, g_extra_r) = jax.value_and_grad(
-        lambda p, e: E.direct_objective(_toy_render, _image_loss, ploss, p, e, rays, targets, *args[:3],
+        lambda p, e: D.direct_objective(_toy_render, _image_loss, ploss, p, e, rays, targets, *args[:3],
                                         height, width),
         argnums=(0, 1),
         has_aux=True,
@@ -143,10 +144,10 @@ def test_deferred_gradient_equals_direct_gradient() -> None:
     # The graph-free render is the jittered image the patches re-render.
     rays = _toy_rays(h, w)
     params = _toy_params(jax.random.PRNGKey(1))
-    keys = E.patch_keys(jax.random.PRNGKey(4), layout.num_patches)
+    keys = D.patch_keys(jax.random.PRNGKey(4), layout.num_patches)
     pairs = zip(layout.index, keys, strict=True)
-    patches = [_toy_render(params, E.gather_rays(rays, i), k)[0] for i, k in pairs]
-    expected = E.assemble(jnp.stack(patches), jnp.asarray(layout.index), jnp.asarray(layout.owner), h, w)
+    patches = [_toy_render(params, D.gather_rays(rays, i), k)[0] for i, k in pairs]
+    expected = D.assemble(jnp.stack(patches), jnp.asarray(layout.index), jnp.asarray(layout.owner), h, w)
     np.testing.assert_allclose(np.asarray(image), np.asarray(expected), atol=1e-6)
 
 
@@ -157,7 +158,7 @@ def test_deferred_gradient_equals_one_full_render_gradient() -> None:
     extra = {"w": jax.random.normal(jax.random.PRNGKey(6), (3, 4)), "b": jnp.zeros(4)}
     rays = _toy_rays(h, w)
     targets = jax.random.uniform(jax.random.PRNGKey(7), (h * w, 3))
-    layout = E.patch_layout(h, w, 5)  # 5 does not divide 12: overlapping border patches
+    layout = D.patch_layout(h, w, 5)  # 5 does not divide 12: overlapping border patches
     fixed = lambda p, r, k: _toy_render(p, r, None)  # no jitter: per-ray results independent of batching
     idx, own = jnp.asarray(layout.index), jnp.asarray(layout.owner)
 
@@ -170,7 +171,7 @@ def test_deferred_gradient_equals_one_full_render_gradient() -> None:
         return loss + patch
 
     g_ref = jax.grad(full, argnums=(0, 1))(params, extra)
-    _, _, _, g_p, g_e = E.deferred_grad(
+    _, _, _, g_p, g_e = D.deferred_grad(
         fixed, _image_loss, _patch_loss, params, extra, rays, targets, idx, own, jax.random.PRNGKey(9), h, w
     )
     _assert_trees_close(g_p, g_ref[0])
@@ -215,10 +216,10 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
         return loss, {}
 
     ploss = functools.partial(E.patch_loss, cfg)
-    layout = E.patch_layout(h, w, 11)
+    layout = D.patch_layout(h, w, 11)
     index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
     _, _, image, g_params, g_dec = jax.jit(
-        lambda p, d: E.deferred_grad(render_fn, image_loss, ploss, p, d, rays, targets, index, owner,
+        lambda p, d: D.deferred_grad(render_fn, image_loss, ploss, p, d, rays, targets, index, owner,
                                      jax.random.PRNGKey(4), h, w)
     )(params, dec["params"])  # fmt: skip
 
@@ -242,14 +243,14 @@ def _temp_bytes(height: int, deferred: bool) -> int:
     extra = {"w": jnp.ones((3, 4)), "b": jnp.zeros(4)}
     rays = _toy_rays(height, height)
     targets = jnp.zeros((height * height, 3))
-    layout = E.patch_layout(height, height, 8)
+    layout = D.patch_layout(height, height, 8)
     index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
     args = (rays, targets, index, owner, jax.random.PRNGKey(0), height, height)
     if deferred:
-        fn = lambda p, e: E.deferred_grad(_toy_render, _image_loss, _patch_loss, p, e, *args)
+        fn = lambda p, e: D.deferred_grad(_toy_render, _image_loss, _patch_loss, p, e, *args)
     else:
         fn = lambda p, e: jax.grad(
-            lambda q: E.direct_objective(_toy_render, _image_loss, _patch_loss, q, e, *args)[0]
+            lambda q: D.direct_objective(_toy_render, _image_loss, _patch_loss, q, e, *args)[0]
         )(p)
     return jax.jit(fn).lower(params, extra).compile().memory_analysis().temp_size_in_bytes
 
