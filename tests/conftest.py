@@ -53,6 +53,17 @@ def fern_dir() -> Path:
     return path
 
 
+# A tiny schedule with every event, for test_train.py and test_cli.py (their compilations are shared):
+# alpha mask + shrink after step 30, upsampling after 38, a second alpha mask + ray filtering after 45.
+# The mask threshold is raised so that a field this young already shrinks the box.
+TINY_SCHEDULE = [
+    "data.procedural_size=32", "data.procedural_views=8", "train.batch_size=512", "train.n_iters=60",
+    "train.n_voxel_init=4096", "train.n_voxel_final=13824", "train.upsample_steps=38",
+    "train.alpha_mask_steps=30,45", "render.alpha_mask_threshold=1e-3", "train.checkpoint_every=12",
+    "train.log_every=12",
+]  # fmt: skip
+
+
 # ------------------------------------------------------------------ a tiny fitted and watermarked run
 
 TINY_FIT = [

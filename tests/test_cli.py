@@ -6,16 +6,11 @@ import json
 from pathlib import Path
 
 import pytest
+from conftest import TINY_SCHEDULE as TINY
 
 from mnerf_jax import cli
 
 # The schedule of tests/test_train.py (same static shapes: its compilations are reused here).
-TINY = [
-    "data.procedural_size=32", "data.procedural_views=8", "train.batch_size=512", "train.n_iters=60",
-    "train.n_voxel_init=4096", "train.n_voxel_final=13824", "train.upsample_steps=38",
-    "train.alpha_mask_steps=30,45", "render.alpha_mask_threshold=1e-3", "train.checkpoint_every=12",
-    "train.log_every=12",
-]  # fmt: skip
 
 
 def _sets(overrides: list[str]) -> list[str]:

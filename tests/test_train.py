@@ -5,21 +5,12 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+from conftest import TINY_SCHEDULE as TINY
 
 from mnerf_jax import grids, train
 from mnerf_jax.config import load_config
 from mnerf_jax.data import load_scene
 from mnerf_jax.errors import MnerfError
-
-# A tiny schedule with every event: alpha mask + shrink after step 30, upsampling after 38, a second
-# alpha mask + ray filtering after 45. The mask threshold is raised so that a field this young
-# already shrinks the box. (tests/test_cli.py uses the same schedule: compilations are shared.)
-TINY = [
-    "data.procedural_size=32", "data.procedural_views=8", "train.batch_size=512", "train.n_iters=60",
-    "train.n_voxel_init=4096", "train.n_voxel_final=13824", "train.upsample_steps=38",
-    "train.alpha_mask_steps=30,45", "render.alpha_mask_threshold=1e-3", "train.checkpoint_every=12",
-    "train.log_every=12",
-]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
