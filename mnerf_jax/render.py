@@ -112,7 +112,9 @@ class FieldFns:
 
 
 @dataclasses.dataclass(frozen=True)
-class _TensorfDensity:
+class TensorfDensity:
+    """TensoRF's density ``σ(xyz) [P]``; shared by every field (the watermark leaves density alone)."""
+
     cfg: ModelConfig
 
     def __call__(self, params: Params, xyz: Array) -> Array:
@@ -130,7 +132,7 @@ class _TensorfColour:
 
 def tensorf_field_fns(model_cfg: ModelConfig) -> FieldFns:
     """FieldFns of the plain TensoRF backbone (``cond`` is ignored)."""
-    return FieldFns(density=_TensorfDensity(model_cfg), colour=_TensorfColour(model_cfg))
+    return FieldFns(density=TensorfDensity(model_cfg), colour=_TensorfColour(model_cfg))
 
 
 @flax.struct.dataclass

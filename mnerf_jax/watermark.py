@@ -50,7 +50,7 @@ import jax.numpy as jnp
 from mnerf_jax import field, grids
 from mnerf_jax.config import ModelConfig, WatermarkConfig
 from mnerf_jax.errors import MnerfError
-from mnerf_jax.render import FieldFns
+from mnerf_jax.render import FieldFns, TensorfDensity
 
 Array = jax.Array
 Params = dict
@@ -299,14 +299,6 @@ def colour(
 
 
 @dataclasses.dataclass(frozen=True)
-class _Density:
-    model_cfg: ModelConfig
-
-    def __call__(self, params: Params, xyz: Array) -> Array:
-        return field.density(params, xyz, self.model_cfg)
-
-
-@dataclasses.dataclass(frozen=True)
 class _Colour:
     model_cfg: ModelConfig
     cfg: WatermarkConfig
@@ -317,7 +309,7 @@ class _Colour:
 
 def field_fns(model_cfg: ModelConfig, cfg: WatermarkConfig) -> FieldFns:
     """FieldFns of the watermarked field (hashable: equal configs share compilations)."""
-    return FieldFns(density=_Density(model_cfg), colour=_Colour(model_cfg, cfg))
+    return FieldFns(density=TensorfDensity(model_cfg), colour=_Colour(model_cfg, cfg))
 
 
 def watermark_param_count(params: Params) -> int:
