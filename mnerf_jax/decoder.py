@@ -170,6 +170,21 @@ def set_whitening(variables: Mapping[str, Any], w: np.ndarray, b: np.ndarray) ->
     return {"params": params, "batch_stats": variables["batch_stats"]}
 
 
+def calibrate_batch_norm(variables: Mapping[str, Any], ll2: jax.Array) -> Variables:
+    """Set every BatchNorm's running mean and variance to the batch statistics of ``ll2 [B, h, w, 3]``.
+
+    A random-init decoder keeps BatchNorm's initial statistics (mean 0, variance 1), so in eval mode its
+    activations are not normalised and its outputs barely vary between images (std ~1e-3 measured on the
+    procedural scene): whitening then multiplies them by ~4e3, and every optimizer step on the decoder moves
+    the logits by ~1. Calibrated statistics make eval mode behave like the network as initialised.
+    """
+    old = variables["batch_stats"]
+    _, new = apply_ll2_train(variables, ll2)
+    # flax: running = momentum · running + (1 − momentum) · batch, with momentum 0.9 (ConvBNGELU).
+    batch = jax.tree.map(lambda n, o: (n - 0.9 * o) / 0.1, new, old)
+    return {**variables, "batch_stats": jax.tree.map(lambda x: np.asarray(x, np.float32), batch)}
+
+
 def fit_whitening(variables: Mapping[str, Any], ll2_batches: list[jax.Array]) -> Variables:
     """Fit the whitening layer to the raw outputs over the given LL2 batches (each ``[b, h, w, 3]``)."""
     apply = jax.jit(lambda v, x: apply_ll2(v, x, whiten=False))
@@ -332,7 +347,11 @@ FRESH = "fresh"  # ``--decoder fresh``: see :func:`fresh_decoder`
 
 
 def fresh_decoder(
-    bits: int, images: np.ndarray, seed: int = 0, wavelet: str = "bior4.4", max_images: int = 64
+    bits: int,
+    images: np.ndarray,
+    seed: int = 0,
+    wavelet: str = "bior4.4",
+    max_images: int = 64,
 ) -> LoadedDecoder:
     """A random-init decoder whitened on ``images [N, H, W, 3]`` in [0, 1] (up to ``max_images`` of them).
 
@@ -351,6 +370,7 @@ def fresh_decoder(
     if len(images) <= bits:
         raise MnerfError(f"a fresh {bits}-bit decoder needs more than {bits // 4} training images")
     variables = init_decoder(jax.random.PRNGKey(seed), bits)
+    variables = calibrate_batch_norm(variables, dwt.ll2(jnp.asarray(images), wavelet))
     batches = [dwt.ll2(jnp.asarray(images[i : i + 16]), wavelet) for i in range(0, len(images), 16)]
     variables = fit_whitening(variables, batches)
     variables = jax.tree.map(lambda x: np.asarray(x, np.float32), variables)

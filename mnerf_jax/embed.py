@@ -132,23 +132,27 @@ def phase_of(step: int, cfg: WatermarkConfig) -> int:
 def param_labels(tree: PyTree, cfg: WatermarkConfig) -> PyTree:
     """Optimiser group of every leaf of ``{"field": params, "decoder": decoder params}``.
 
-    ``grid``: the density, appearance and watermark VM factors (``lr_grid``); ``embedding``: Emb and Mod
-    (``lr_embedding``: each ID's row of Emb only learns on the steps that draw that ID); ``network``: basis,
-    MLP (with its extra rows), the position MLP (``lr_network``); ``decoder`` (``lr_decoder``); ``frozen``:
-    the density grid of the frozen_geometry variant.
+    ``grid``: the watermark VM factors (``lr_grid``); ``source_grid``: the fitted density and appearance
+    factors (``lr_grid · lr_source_scale``); ``embedding``: Emb and Mod (``lr_embedding``: each ID's row of
+    Emb only learns on the steps that draw that ID); ``network``: the MLP's extra rows and the position MLP
+    (``lr_network``); ``source_network``: the fitted basis and MLP (``lr_network · lr_source_scale``);
+    ``decoder`` (``lr_decoder``); ``frozen``: the density grid of the frozen_geometry variant.
     """
-    density_label = "grid" if watermark.trains_density(cfg) else "frozen"
+    density_label = "source_grid" if watermark.trains_density(cfg) else "frozen"
 
     def field_label(path: tuple[Any, ...], _: Any) -> str:
         names = [getattr(p, "key", getattr(p, "name", None)) for p in path]
         top = names[0] if names else None
-        if top == "wm" and len(names) > 1 and names[1] in ("emb", "mod"):
-            return "embedding"
+        second = names[1] if len(names) > 1 else None
+        if top == "wm":
+            return "embedding" if second in ("emb", "mod") else "grid" if second == "grid" else "network"
         if top == "density":
             return density_label
-        if top == "appearance" or (top == "wm" and len(names) > 1 and names[1] == "grid"):
-            return "grid"
-        return "network"
+        if top == "appearance":
+            return "source_grid"
+        if top == "mlp" and second in ("out_extra", "in_extra"):
+            return "network"
+        return "source_network"
 
     return {
         "field": jax.tree_util.tree_map_with_path(field_label, tree["field"]),
@@ -172,6 +176,8 @@ def make_optimizer(
     transforms = {
         "grid": group(cfg.lr_grid),
         "network": group(cfg.lr_network),
+        "source_grid": group(cfg.lr_grid * cfg.lr_source_scale),
+        "source_network": group(cfg.lr_network * cfg.lr_source_scale),
         "decoder": group(cfg.lr_decoder),
         "embedding": group(cfg.lr_embedding),
         "frozen": optax.set_to_zero(),
@@ -197,7 +203,7 @@ def _render_patch_fn(spec: StepSpec, geometry: render.Geometry, index: jax.Array
 def perceptual_loss(kind: str, image: jax.Array, reference: jax.Array, vgg_params: Any = None) -> jax.Array:
     """Phase 1's perceptual term: Watson-DCT (default) or LPIPS-VGG."""
     if kind == "watson":
-        return losses.watson_dct_loss(image, reference)
+        return losses.watson_dct_loss(image, reference, chroma=True)
     if kind == "vgg":
         return losses.vgg_perceptual_loss(image, reference, vgg_params)
     raise EmbedError(f"unknown watermark.perceptual {kind!r} (watson | vgg)")

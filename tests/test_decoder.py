@@ -109,6 +109,28 @@ def test_whitening_formula_on_correlated_gaussians() -> None:
         dec.whitening_from_outputs(x[:5])
 
 
+def test_batch_norm_calibration_makes_eval_mode_match_train_mode() -> None:
+    variables = dec.init_decoder(jax.random.PRNGKey(0), 16)
+    ll2 = dwt.ll2(jax.random.uniform(jax.random.PRNGKey(2), (24, 32, 32, 3)))
+    train_logits, _ = dec.apply_ll2_train(variables, ll2)
+    calibrated = dec.calibrate_batch_norm(variables, ll2)
+    np.testing.assert_allclose(dec.apply_ll2(calibrated, ll2), train_logits, rtol=1e-3, atol=1e-4)
+    # The params are untouched; only the running statistics moved (away from the init's 0 / 1).
+    np.testing.assert_array_equal(calibrated["params"]["block_0"]["conv"]["kernel"],
+                                  variables["params"]["block_0"]["conv"]["kernel"])  # fmt: skip
+    assert float(jnp.abs(calibrated["batch_stats"]["block_3"]["bn"]["mean"]).max()) > 1e-3
+
+
+def test_fresh_decoder_has_unit_logits_and_a_moderate_whitening_gain() -> None:
+    images = np.random.default_rng(0).uniform(0.2, 0.8, (40, 32, 32, 3)).astype(np.float32)
+    fresh = dec.fresh_decoder(16, images, max_images=40)
+    logits = np.asarray(dec.decode_logits(fresh.variables, jnp.asarray(images)), np.float64)
+    np.testing.assert_allclose(np.cov(logits, rowvar=False, bias=True), np.eye(16), atol=1e-2)
+    # Uncalibrated BatchNorm left the raw outputs ~1e-3 apart and the whitening kernel ~4e3 (every decoder
+    # step then moved the logits by ~1); calibrated, the gain stays moderate.
+    assert float(np.abs(fresh.variables["params"]["whiten"]["kernel"]).max()) < 500.0
+
+
 def test_save_load_round_trip(tmp_path: Path, small_decoder: dict) -> None:
     path = tmp_path / "d.npz"
     meta = dec.save_decoder(path, small_decoder, {"training": {"note": "unit test"}}, wavelet="haar")

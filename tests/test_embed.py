@@ -406,10 +406,12 @@ def test_optimizer_groups_and_learning_rates(variant: str) -> None:
     labels = E.param_labels(tree, cfg)
     flat = {jax.tree_util.keystr(p): v for p, v in jax.tree_util.tree_leaves_with_path(labels)}
     density = {v for k, v in flat.items() if k.startswith("['field']['density']")}
-    assert density == ({"frozen"} if variant == "frozen_geometry" else {"grid"})
-    assert {v for k, v in flat.items() if "['appearance']" in k} == {"grid"}
-    assert {v for k, v in flat.items() if "['mlp']" in k or "['basis']" in k} == {"network"}
+    assert density == ({"frozen"} if variant == "frozen_geometry" else {"source_grid"})
+    assert {v for k, v in flat.items() if "['appearance']" in k} == {"source_grid"}
+    fitted_network = {v for k, v in flat.items() if ("['mlp']" in k and "_extra']" not in k) or "['basis']" in k}
+    assert fitted_network == {"source_network"}
     if variant != "waterf":
+        assert {v for k, v in flat.items() if "_extra']" in k} == {"network"}
         assert {v for k, v in flat.items() if "['wm']['grid']" in k} == {"grid"}
         assert {v for k, v in flat.items() if "['emb']" in k or "['mod']" in k} == {"embedding"}
     assert {v for k, v in flat.items() if k.startswith("['decoder']")} == {"decoder"}
@@ -418,7 +420,8 @@ def test_optimizer_groups_and_learning_rates(variant: str) -> None:
     grads = jax.tree.map(jnp.ones_like, tree)
     updates, _ = tx.update(grads, tx.init(tree), tree)
     lr = {"grid": cfg.lr_grid, "network": cfg.lr_network, "embedding": cfg.lr_embedding,
-          "decoder": cfg.lr_decoder, "frozen": 0.0}  # fmt: skip
+          "decoder": cfg.lr_decoder, "frozen": 0.0, "source_grid": cfg.lr_grid * cfg.lr_source_scale,
+          "source_network": cfg.lr_network * cfg.lr_source_scale}  # fmt: skip
     pairs = zip(jax.tree_util.tree_leaves_with_path(updates), jax.tree.leaves(labels), strict=True)
     for (path, update), label in pairs:
         where = jax.tree_util.keystr(path)
