@@ -185,7 +185,7 @@ def make_optimizer(
     return optax.multi_transform(transforms, functools.partial(param_labels, cfg=cfg))
 
 
-def _render_patch_fn(spec: StepSpec, geometry: render.Geometry, index: jax.Array) -> RenderFn:
+def render_patch_fn(spec: StepSpec, geometry: render.Geometry, index: jax.Array) -> RenderFn:
     fns = watermark.field_fns(spec.model, spec.wm)
 
     def render_fn(params: PyTree, rays: PyTree, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
@@ -219,6 +219,39 @@ def patch_loss(cfg: WatermarkConfig, rgb: jax.Array, target: jax.Array) -> jax.A
     return loss
 
 
+def make_image_loss(
+    spec: StepSpec,
+    key: jax.Array,
+    message: jax.Array,
+    target_image: jax.Array,
+    batch_stats: PyTree,
+    vgg_params: Any = None,
+) -> Callable[[jax.Array, PyTree], tuple[jax.Array, dict[str, jax.Array]]]:
+    """The image-level loss ``(image [H, W, 3], decoder params) -> (loss, {"bce", "perceptual"})``.
+
+    Phase 2: ``augment_per_step`` random augmentations (``key``) → LL2 → decoder → BCE(T) against
+    ``message [L]``. Phase 1: no augmentation, plus the perceptual term against ``target_image``.
+    """
+    cfg = spec.wm
+
+    def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
+        variables = {"params": dec_params, "batch_stats": batch_stats}
+        seen = image[None]
+        if spec.phase == 2 and cfg.augment_per_step > 0:
+            seen = augment.random_policy(key, seen, cfg.augment_strength, k=cfg.augment_per_step,
+                                         p=cfg.augment_prob)  # fmt: skip
+        logits = decoder_lib.apply_ll2(variables, dwt.ll2(seen, cfg.wavelet))[0]
+        bce = losses.bce_with_logits(logits, message, cfg.bce_temperature)
+        loss = cfg.lambda_message * bce
+        perc = jnp.zeros((), jnp.float32)
+        if spec.phase == 1 and cfg.lambda_perceptual:
+            perc = perceptual_loss(cfg.perceptual, image, target_image, vgg_params)
+            loss = loss + cfg.lambda_perceptual * perc
+        return loss, {"bce": bce, "perceptual": perc}
+
+    return image_loss
+
+
 @functools.partial(jax.jit, static_argnames=("spec",))
 def embed_step(
     state: EmbedState,
@@ -243,24 +276,9 @@ def embed_step(
     message = batch["message"]
     target_image = batch["target"].reshape(h, w, 3)
     batch_stats = state.decoder["batch_stats"]
-
-    def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
-        variables = {"params": dec_params, "batch_stats": batch_stats}
-        seen = image[None]
-        if spec.phase == 2 and cfg.augment_per_step > 0:
-            seen = augment.random_policy(k_aug, seen, cfg.augment_strength, k=cfg.augment_per_step,
-                                         p=cfg.augment_prob)  # fmt: skip
-        logits = decoder_lib.apply_ll2(variables, dwt.ll2(seen, cfg.wavelet))[0]
-        bce = losses.bce_with_logits(logits, message, cfg.bce_temperature)
-        loss = cfg.lambda_message * bce
-        perc = jnp.zeros((), jnp.float32)
-        if spec.phase == 1 and cfg.lambda_perceptual:
-            perc = perceptual_loss(cfg.perceptual, image, target_image, vgg_params)
-            loss = loss + cfg.lambda_perceptual * perc
-        return loss, {"bce": bce, "perceptual": perc}
-
+    image_loss = make_image_loss(spec, k_aug, message, target_image, batch_stats, vgg_params)
     ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
-    render_fn = _render_patch_fn(spec, geometry, batch["id"])
+    render_fn = render_patch_fn(spec, geometry, batch["id"])
     loss, aux, image, g_field, g_dec = deferred_grad(
         render_fn, image_loss, ploss, state.params, state.decoder["params"],
         (batch["rays_o"], batch["rays_d"]), batch["target"], layout_index, layout_owner, k_render, h, w,

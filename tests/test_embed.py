@@ -408,7 +408,8 @@ def test_optimizer_groups_and_learning_rates(variant: str) -> None:
     density = {v for k, v in flat.items() if k.startswith("['field']['density']")}
     assert density == ({"frozen"} if variant == "frozen_geometry" else {"source_grid"})
     assert {v for k, v in flat.items() if "['appearance']" in k} == {"source_grid"}
-    fitted_network = {v for k, v in flat.items() if ("['mlp']" in k and "_extra']" not in k) or "['basis']" in k}
+    fitted = [k for k in flat if ("['mlp']" in k and "_extra']" not in k) or "['basis']" in k]
+    fitted_network = {flat[k] for k in fitted}
     assert fitted_network == {"source_network"}
     if variant != "waterf":
         assert {v for k, v in flat.items() if "_extra']" in k} == {"network"}
