@@ -127,6 +127,10 @@ class WatermarkConfig:
     # parameter by about its lr whatever its gradient, and at 1.0 that cost the fitted procedural field
     # 35.4 → 29.0 dB train-view PSNR in three steps (at 0.1: 33.9 after one step, 35.4 again at the third).
     lr_source_scale: float = 0.1
+    # Phase 2: + lambda_clean · BCE(decoder(augmented ground-truth view), ½): a clean image should decode to
+    # nothing. Not in the paper; meant for decoders that learn with the field (fresh ones), which otherwise
+    # learn to read the scene itself (clean renders then decode as a key).
+    lambda_clean: float = 0.0
     lr_decay_ratio: float = 0.1
     wavelet: str = "bior4.4"
     checkpoint_every: int = 100

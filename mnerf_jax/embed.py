@@ -243,6 +243,13 @@ def make_image_loss(
         logits = decoder_lib.apply_ll2(variables, dwt.ll2(seen, cfg.wavelet))[0]
         bce = losses.bce_with_logits(logits, message, cfg.bce_temperature)
         loss = cfg.lambda_message * bce
+        if spec.phase == 2 and cfg.lambda_clean:
+            clean = target_image[None]
+            if cfg.augment_per_step > 0:
+                clean = augment.random_policy(key, clean, cfg.augment_strength, k=cfg.augment_per_step,
+                                              p=cfg.augment_prob)  # fmt: skip
+            clean_logits = decoder_lib.apply_ll2(variables, dwt.ll2(clean, cfg.wavelet))[0]
+            loss = loss + cfg.lambda_clean * losses.bce_with_logits(clean_logits, 0.5, cfg.bce_temperature)
         perc = jnp.zeros((), jnp.float32)
         if spec.phase == 1 and cfg.lambda_perceptual:
             perc = perceptual_loss(cfg.perceptual, image, target_image, vgg_params)

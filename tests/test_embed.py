@@ -237,6 +237,39 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
     assert float(jnp.abs(ref_params["wm"]["grid"]["planes"][0]).max()) > 0
 
 
+def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_message() -> None:
+    # watermark.lambda_clean adds λ·BCE(decoder(ground truth), ½) in phase 2: a constant in the image (the
+    # field's gradient is unchanged) that trains the decoder to read nothing from unwatermarked images.
+    from mnerf_jax import decoder, losses
+    from mnerf_jax.config import ModelConfig, WatermarkConfig
+
+    dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
+    image = jax.random.uniform(jax.random.PRNGKey(1), (24, 24, 3))
+    target = jax.random.uniform(jax.random.PRNGKey(2), (24, 24, 3))
+    message = jnp.array([1, 0, 1, 1, 0, 0, 1, 0], jnp.float32)
+
+    def loss_fn(lambda_clean: float, phase: int = 2):
+        cfg = WatermarkConfig(augment_per_step=0, lambda_clean=lambda_clean)
+        spec = E.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
+                          width=24, density_budget=1, colour_budget=1)  # fmt: skip
+        return E.make_image_loss(spec, jax.random.PRNGKey(3), message, target, dec["batch_stats"])
+
+    with_clean, without = loss_fn(0.5), loss_fn(0.0)
+    clean_logits = decoder.apply_ll2(dec, dwt.ll2(target[None]))[0]
+    expected = 0.5 * losses.bce_with_logits(clean_logits, 0.5)
+    delta = with_clean(image, dec["params"])[0] - without(image, dec["params"])[0]
+    np.testing.assert_allclose(delta, expected, rtol=1e-5)
+    g_with = jax.grad(lambda x: with_clean(x, dec["params"])[0])(image)
+    g_without = jax.grad(lambda x: without(x, dec["params"])[0])(image)
+    np.testing.assert_allclose(g_with, g_without, rtol=1e-6, atol=1e-9)
+    d_with = jax.grad(lambda d: with_clean(image, d)[0])(dec["params"])
+    d_without = jax.grad(lambda d: without(image, d)[0])(dec["params"])
+    assert float(jnp.abs(d_with["linear"]["bias"] - d_without["linear"]["bias"]).max()) > 0
+    # Phase 1 (decoder frozen) has no such term.
+    phase1 = [loss_fn(lam, 1)(image, dec["params"])[0] for lam in (0.5, 0.0)]
+    np.testing.assert_allclose(phase1[0], phase1[1])
+
+
 def _temp_bytes(height: int, deferred: bool) -> int:
     """XLA's temporary memory of one gradient computation on a ``height²`` image with 8-px patches."""
     params = _toy_params(jax.random.PRNGKey(1))
