@@ -230,7 +230,8 @@ def make_image_loss(
     """The image-level loss ``(image [H, W, 3], decoder params) -> (loss, {"bce", "perceptual"})``.
 
     Phase 2: ``augment_per_step`` random augmentations (``key``) → LL2 → decoder → BCE(T) against
-    ``message [L]``. Phase 1: no augmentation, plus the perceptual term against ``target_image``.
+    ``message [L]``, plus (``lambda_clean``) BCE(T) of the equally augmented ``target_image`` against ½.
+    Phase 1: no augmentation, plus the perceptual term against ``target_image``.
     """
     cfg = spec.wm
 
@@ -245,7 +246,7 @@ def make_image_loss(
         loss = cfg.lambda_message * bce
         if spec.phase == 2 and cfg.lambda_clean:
             clean = target_image[None]
-            if cfg.augment_per_step > 0:
+            if cfg.augment_per_step > 0:  # the same key: the same augmentations, the same parameters
                 clean = augment.random_policy(key, clean, cfg.augment_strength, k=cfg.augment_per_step,
                                               p=cfg.augment_prob)  # fmt: skip
             clean_logits = decoder_lib.apply_ll2(variables, dwt.ll2(clean, cfg.wavelet))[0]
