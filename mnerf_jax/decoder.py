@@ -46,6 +46,9 @@ ASSET_DIR = Path(__file__).resolve().parent / "assets" / "decoders"
 Variables = dict[str, Any]
 
 
+BN_MOMENTUM = 0.9  # flax convention (= torch momentum 0.1)
+
+
 class ConvBNGELU(nn.Module):
     """Conv3×3 (pad 1) → BatchNorm (eps 1e-3, torch momentum 0.1) → exact GELU: ``[B,h,w,C] → [B,h,w,F]``."""
 
@@ -55,7 +58,7 @@ class ConvBNGELU(nn.Module):
     def __call__(self, x: jax.Array, train: bool = False) -> jax.Array:
         x = nn.Conv(self.features, (3, 3), padding=1, name="conv")(x)
         # Flax's momentum is the weight of the old running value: torch's 0.1 is flax's 0.9.
-        x = nn.BatchNorm(use_running_average=not train, momentum=0.9, epsilon=1e-3, name="bn")(x)
+        x = nn.BatchNorm(use_running_average=not train, momentum=BN_MOMENTUM, epsilon=1e-3, name="bn")(x)
         return nn.gelu(x, approximate=False)
 
 
@@ -180,8 +183,8 @@ def calibrate_batch_norm(variables: Mapping[str, Any], ll2: jax.Array) -> Variab
     """
     old = variables["batch_stats"]
     _, new = apply_ll2_train(variables, ll2)
-    # flax: running = momentum · running + (1 − momentum) · batch, with momentum 0.9 (ConvBNGELU).
-    batch = jax.tree.map(lambda n, o: (n - 0.9 * o) / 0.1, new, old)
+    # flax: running = momentum · running + (1 − momentum) · batch; solved for batch.
+    batch = jax.tree.map(lambda n, o: (n - BN_MOMENTUM * o) / (1.0 - BN_MOMENTUM), new, old)
     return {**variables, "batch_stats": jax.tree.map(lambda x: np.asarray(x, np.float32), batch)}
 
 

@@ -235,21 +235,21 @@ def make_image_loss(
     """
     cfg = spec.wm
 
-    def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
-        variables = {"params": dec_params, "batch_stats": batch_stats}
+    def decode(image: jax.Array, dec_params: PyTree) -> jax.Array:
+        """Logits ``[L]`` of ``image [H, W, 3]`` as the decoder sees it (augmented in phase 2: the same key,
+        so the same augmentations with the same parameters for every image passed)."""
         seen = image[None]
         if spec.phase == 2 and cfg.augment_per_step > 0:
             seen = augment.random_policy(key, seen, cfg.augment_strength, k=cfg.augment_per_step,
                                          p=cfg.augment_prob)  # fmt: skip
-        logits = decoder_lib.apply_ll2(variables, dwt.ll2(seen, cfg.wavelet))[0]
-        bce = losses.bce_with_logits(logits, message, cfg.bce_temperature)
+        variables = {"params": dec_params, "batch_stats": batch_stats}
+        return decoder_lib.apply_ll2(variables, dwt.ll2(seen, cfg.wavelet))[0]
+
+    def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
+        bce = losses.bce_with_logits(decode(image, dec_params), message, cfg.bce_temperature)
         loss = cfg.lambda_message * bce
         if spec.phase == 2 and cfg.lambda_clean:
-            clean = target_image[None]
-            if cfg.augment_per_step > 0:  # the same key: the same augmentations, the same parameters
-                clean = augment.random_policy(key, clean, cfg.augment_strength, k=cfg.augment_per_step,
-                                              p=cfg.augment_prob)  # fmt: skip
-            clean_logits = decoder_lib.apply_ll2(variables, dwt.ll2(clean, cfg.wavelet))[0]
+            clean_logits = decode(target_image, dec_params)
             loss = loss + cfg.lambda_clean * losses.bce_with_logits(clean_logits, 0.5, cfg.bce_temperature)
         perc = jnp.zeros((), jnp.float32)
         if spec.phase == 1 and cfg.lambda_perceptual:
