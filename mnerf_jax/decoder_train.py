@@ -2,21 +2,26 @@
 
 Recipe (CPU-sized; every step is one jitted function over a small batch of crops):
 
-1. **Joint training.** An encoder hides a random message in each image; the decoder reads it back from the LL2
-   sub-band of the encoded image after the augmentation layer. The encoder works at LL2 resolution (cheap): it
-   maps ``LL2(image)/4`` and the message (broadcast over space, ±1) through conv-BN-ReLU blocks to an
-   LL2-domain pattern ``R``, which reaches the image through the adjoint of the LL2 transform (a smooth ×4
-   upsampling) and is scaled per image to a fixed RMS, so that every encoded image has PSNR ≥ ``target_psnr``
-   against its original (clipping to [0, 1] only lowers the error). Curriculum: the residual starts strong
-   (``start_psnr``) and weakens to ``target_psnr``; the first ``clean_fraction`` of the steps see no
-   augmentation, the rest go through ``augment.random_policy`` (Low, 2 augmentations, p = 0.75).
-2. **Whitening.** The decoder's raw outputs over clean training crops give ``W = diag(e^-1/2)·Vᵀ``,
+1. **Informed stage** (``informed_steps``). The decoder learns against its own gradient watermark
+   (``informed.informed_embed``): the residual is the message gradient through the decoder, scaled to a PSNR
+   rising from ``informed_start_psnr`` to ``target_psnr``; the decoder reads the encoded image (through the
+   augmentation layer after ``clean_fraction`` of the steps). Image sides take turns (``informed_sizes``).
+2. **Joint training** (``steps``; 0 in the default recipe). An encoder hides a random message in each image;
+   the decoder reads it back from the LL2 sub-band of the encoded image after the augmentation layer. The
+   encoder works at LL2 resolution (cheap): it maps ``LL2(image)/4`` and the message (broadcast over space,
+   ±1) through conv-BN-ReLU blocks to an LL2-domain pattern ``R``, which reaches the image through the adjoint
+   of the LL2 transform (a smooth ×4 upsampling) and is scaled per image to a fixed RMS, so that every encoded
+   image has PSNR ≥ ``target_psnr`` against its original (clipping to [0, 1] only lowers the error).
+   Curriculum: the residual starts strong (``start_psnr``) and weakens to ``target_psnr``; the first
+   ``clean_fraction`` of the steps see no augmentation, the rest go through ``augment.random_policy`` (Low, 2
+   augmentations, p = 0.75).
+3. **Whitening.** The decoder's raw outputs over clean training crops give ``W = diag(e^-1/2)·Vᵀ``,
    ``b = −W·mean``: unwatermarked images then decode to white (zero-mean, identity-covariance) logits.
-3. **Encoder fine-tuning.** Whitening rotates the logits, so the encoder that trained with the raw decoder no
-   longer matches (its images decode near chance through the whitened decoder). The encoder is fine-tuned for
-   ``finetune_steps`` through the frozen, whitened decoder; all reported accuracies go through that decoder.
-4. **Evaluation** on held-out crops (photographs and procedural images never used in training): bit accuracy
-   with no attack and under the Low policy, and the encoded images' PSNR.
+4. **Encoder training** (``finetune_steps``) through the frozen, whitened decoder (whitening rotates the
+   logits, so an encoder from stage 2 has to re-fit; after stage 1 alone the encoder learns here from
+   scratch).
+5. **Evaluation** on held-out crops (photographs and procedural images never used in training): bit accuracy
+   of the encoder's images and of informed embeddings, with no attack and under the Low policy, and PSNR.
 
 Images come from ``decoder_images``. Every step's batch is drawn from
 ``numpy.random.default_rng([seed, step])``, so a resumed run sees the same data as an uninterrupted one.
@@ -43,7 +48,7 @@ import numpy as np
 import optax
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import dwt
+from mnerf_jax import dwt, informed
 from mnerf_jax.decoder_images import (
     EVAL_SEED,
     TRAIN_PHOTOS,
@@ -56,10 +61,10 @@ from mnerf_jax.decoder_images import (
 from mnerf_jax.errors import MnerfError
 
 # The parts of the training state that are arrays (and go through the jitted steps); the rest is bookkeeping.
-ARRAY_KEYS = ("encoder", "decoder", "opt", "opt_ft")
+ARRAY_KEYS = ("encoder", "decoder", "opt", "opt_ft", "opt_inf")
 MAX_SKIPPED = 20  # consecutive steps with non-finite gradients before a run is declared diverged
 # Config fields that only change the final evaluation: a finished run can be re-evaluated with --resume.
-EVAL_FIELDS = ("eval_images", "eval_sizes", "eval_augment_draws", "check_images")
+EVAL_FIELDS = ("eval_images", "eval_sizes", "eval_augment_draws", "eval_informed_iterations", "check_images")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,10 +72,13 @@ class DecoderTrainConfig:
     """Everything that decides the trajectory of a decoder training run (compared on ``--resume``)."""
 
     bits: int = 16
-    steps: int = 10000  # joint encoder+decoder steps
-    finetune_steps: int = 1000  # encoder-only steps through the whitened decoder
+    informed_steps: int = 4000  # decoder steps against the informed (gradient) encoder, first
+    informed_sizes: tuple[int, ...] = (64, 128)  # image sides of the informed steps, in turn
+    informed_start_psnr: float = 28.0  # curriculum of the informed steps (reaches target_psnr like the joint)
+    steps: int = 0  # joint encoder+decoder steps, after the informed ones
+    finetune_steps: int = 1500  # encoder-only steps through the whitened decoder
     size: int = 64  # side in pixels of the images the decoder sees in training (LL2 side = size / 4)
-    crop_margin: int = 16  # images are encoded at size + margin; the decoder sees a random size × size window
+    crop_margin: int = 0  # images are encoded at size + margin; the decoder sees a random size × size window
     batch: int = 16
     seed: int = 0
     lr: float = 1e-3
@@ -92,6 +100,7 @@ class DecoderTrainConfig:
     eval_images: int = 128  # held-out crops per evaluation size
     eval_sizes: tuple[int, ...] = (64, 128, 256)  # held-out image sides (pixels)
     eval_augment_draws: int = 4  # Low-policy draws per held-out image (0: no attacked evaluation)
+    eval_informed_iterations: tuple[int, ...] = (1, 10)  # informed embeddings evaluated (iterations each)
     check_images: int = 8  # encoded held-out images stored (uint8) beside the decoder
     wavelet: str = "bior4.4"
     images_dir: str = ""  # extra training images (every image file under it)
@@ -317,20 +326,72 @@ def make_finetune_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation
     return jax.jit(step, donate_argnums=0)
 
 
+def make_informed_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation) -> Callable:
+    """Jitted decoder step against the informed encoder: ``(state, images, bits, key, psnr, augmented)``.
+
+    The watermark is the decoder's own (train-mode) message gradient scaled to ``psnr`` dB
+    (``informed.informed_embed``, one iteration); the decoder then reads the encoded images, through the
+    augmentation layer where ``augmented`` is true, and both uses of the decoder are differentiated.
+    """
+    augment_fn = _augmenter(cfg)
+
+    def loss_fn(params, state, images, bits, key, psnr, augmented):
+        stats = state["decoder"]["batch_stats"]
+        read = lambda x: dec.apply_ll2_train(
+            {"params": params, "batch_stats": stats}, dwt.ll2(x, cfg.wavelet)
+        )
+        encoded = informed.informed_embed(lambda x: read(x)[0], images, bits, psnr)
+        seen = jnp.where(augmented, augment_fn(key, encoded), encoded)
+        logits, dec_stats = read(seen)
+        loss = _message_loss(logits, bits, cfg.temperature)
+        return loss, {"dec_stats": dec_stats, "acc": _bit_acc(logits, bits), "psnr": _psnr(encoded, images)}
+
+    def step(state, images, bits, key, psnr, augmented):
+        params = state["decoder"]["params"]
+        (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            params, state, images, bits, key, psnr, augmented
+        )
+        updates, opt = tx.update(grads, state["opt_inf"], params)
+        new = dict(state)
+        new["decoder"] = {"params": optax.apply_updates(params, updates), "batch_stats": aux["dec_stats"]}
+        new["opt_inf"] = opt
+        return _unless_finite(grads, new, state), _metrics(loss, aux, grads)
+
+    return jax.jit(step, donate_argnums=0)
+
+
+def informed_psnr(cfg: DecoderTrainConfig, step: int) -> float:
+    """Residual strength at an informed step: ``informed_start_psnr`` rising linearly to ``target_psnr``."""
+    span = cfg.anneal_fraction * cfg.informed_steps
+    if step >= span or span <= 0 or cfg.informed_start_psnr >= cfg.target_psnr:
+        return cfg.target_psnr
+    return cfg.informed_start_psnr + (cfg.target_psnr - cfg.informed_start_psnr) * step / span
+
+
+def informed_batch(cfg: DecoderTrainConfig, step: int) -> tuple[int, int]:
+    """``(side, batch)`` of an informed step: the sides take turns, each batch holds about as many pixels."""
+    side = cfg.informed_sizes[step % len(cfg.informed_sizes)]
+    return side, max(1, round(cfg.batch * (cfg.size / side) ** 2))
+
+
 def psnr_schedule(cfg: DecoderTrainConfig, step: int) -> float:
     """Residual strength (PSNR in dB) at a joint step: ``start_psnr`` rising linearly to ``target_psnr``."""
     span = cfg.anneal_fraction * cfg.steps
-    if step >= span or cfg.start_psnr >= cfg.target_psnr:
+    if step >= span or span <= 0 or cfg.start_psnr >= cfg.target_psnr:
         return cfg.target_psnr
     return cfg.start_psnr + (cfg.target_psnr - cfg.start_psnr) * step / span
 
 
 def make_optimizers(
     cfg: DecoderTrainConfig,
-) -> tuple[optax.GradientTransformation, optax.GradientTransformation]:
-    """AdamW with linear warmup + cosine decay (joint), and a shorter cosine for the encoder fine-tuning."""
-    warmup = min(cfg.warmup_steps, max(cfg.steps // 4, 1))
-    joint = optax.warmup_cosine_decay_schedule(0.0, cfg.lr, warmup, max(cfg.steps, warmup + 1), cfg.lr * 0.01)
+) -> tuple[optax.GradientTransformation, optax.GradientTransformation, optax.GradientTransformation]:
+    """AdamW with linear warmup + cosine decay for the joint and for the informed steps, and a shorter
+    cosine for the encoder fine-tuning."""
+
+    def cosine(steps: int) -> optax.Schedule:
+        warmup = min(cfg.warmup_steps, max(steps // 4, 1))
+        return optax.warmup_cosine_decay_schedule(0.0, cfg.lr, warmup, max(steps, warmup + 1), cfg.lr * 0.01)
+
     ft_warm = max(min(50, cfg.finetune_steps // 5), 1)
     finetune = optax.warmup_cosine_decay_schedule(
         0.0, cfg.lr_finetune, ft_warm, max(cfg.finetune_steps, ft_warm + 1), cfg.lr_finetune * 0.01
@@ -338,14 +399,14 @@ def make_optimizers(
     make = lambda schedule: optax.chain(
         optax.clip_by_global_norm(1.0), optax.adamw(schedule, weight_decay=cfg.weight_decay)
     )
-    return make(joint), make(finetune)
+    return make(cosine(cfg.steps)), make(finetune), make(cosine(cfg.informed_steps))
 
 
 def init_state(cfg: DecoderTrainConfig) -> tuple[dict[str, Any], tuple]:
     k_enc, k_dec = jax.random.split(jax.random.PRNGKey(cfg.seed))
     encoder = init_encoder(k_enc, cfg.bits, cfg.encoder_channels, cfg.encoder_depth)
     decoder = dec.init_decoder(k_dec, cfg.bits)
-    tx_joint, tx_ft = make_optimizers(cfg)
+    tx_joint, tx_ft, tx_inf = make_optimizers(cfg)
     state = {
         "step": 0,
         "whitened": False,
@@ -355,8 +416,9 @@ def init_state(cfg: DecoderTrainConfig) -> tuple[dict[str, Any], tuple]:
         "decoder": decoder,
         "opt": jax.jit(tx_joint.init)({"encoder": encoder["params"], "decoder": decoder["params"]}),
         "opt_ft": jax.jit(tx_ft.init)(encoder["params"]),
+        "opt_inf": jax.jit(tx_inf.init)(decoder["params"]),
     }
-    return state, (tx_joint, tx_ft)
+    return state, (tx_joint, tx_ft, tx_inf)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -381,7 +443,7 @@ def load_checkpoint(path: Path, template: dict[str, Any], cfg: DecoderTrainConfi
             f"checkpoint {path} is unreadable ({type(err).__name__}); delete it to start over"
         ) from None
     saved = json.loads(payload["config"])
-    current = cfg.trajectory()
+    current = json.loads(json.dumps(cfg.trajectory()))  # tuples read back as lists
     diffs = [f"{k}: {saved.get(k)} -> {current[k]}" for k in sorted(current) if saved.get(k) != current[k]]
     if diffs:
         raise MnerfError(
@@ -455,6 +517,54 @@ def evaluate(
         "psnr_mean": float(psnr.mean()),
         "psnr_min": float(psnr.min()),
         "images": int(len(images)),
+        "informed": {
+            f"{n}_iterations": evaluate_informed(cfg, dec_vars, images, bits, n, batch)
+            for n in cfg.eval_informed_iterations
+        },
+    }
+
+
+def evaluate_informed(
+    cfg: DecoderTrainConfig,
+    dec_vars: dict[str, Any],
+    images: np.ndarray,
+    bits: np.ndarray,
+    iterations: int,
+    batch: int = 32,
+) -> dict[str, float | None]:
+    """Bit accuracy (no attack, Low) and PSNR of informed embeddings (``informed.informed_embed``) of a set.
+
+    This is how a radiance field carries the watermark (it follows the decoder's gradient), so these figures
+    predict MultiNeRF's; the encoder's figures (``evaluate``) are the HiDDeN protocol.
+    """
+    draws = cfg.eval_augment_draws
+    augment_fn = _augmenter(cfg)
+
+    @jax.jit
+    def run(dec_vars, x, m, key):
+        read = lambda y: dec.apply_ll2(dec_vars, dwt.ll2(y, cfg.wavelet))
+        encoded = informed.informed_embed(read, x, m, cfg.target_psnr, iterations)
+        acc_clean = jnp.mean((read(encoded) > 0) == (m > 0.5), axis=-1)
+        attacked = jax.lax.map(lambda k: read(augment_fn(k, encoded)), jax.random.split(key, max(draws, 1)))
+        acc_low = jnp.mean((attacked > 0) == (m > 0.5)[None], axis=(0, -1))
+        mse = jnp.mean((encoded - x) ** 2, axis=(-3, -2, -1))
+        return acc_clean, acc_low, -10.0 * jnp.log10(jnp.maximum(mse, 1e-12))
+
+    parts = [
+        run(
+            dec_vars,
+            jnp.asarray(images[i : i + batch]),
+            jnp.asarray(bits[i : i + batch]),
+            jax.random.fold_in(jax.random.PRNGKey(EVAL_SEED), i),
+        )
+        for i in range(0, len(images), batch)
+    ]
+    acc_clean, acc_low, psnr = (np.concatenate([np.asarray(p[j]) for p in parts]) for j in range(3))
+    return {
+        "bit_acc_none": float(acc_clean.mean()),
+        "bit_acc_low": float(acc_low.mean()) if draws > 0 else None,
+        "psnr_mean": float(psnr.mean()),
+        "psnr_min": float(psnr.min()),
     }
 
 
@@ -476,12 +586,24 @@ def _encode_eval(
 # The run
 
 
-def _batches(cfg: DecoderTrainConfig, source: ImageSource, start: int, stop: int) -> Iterator[tuple]:
+def _batches(
+    cfg: DecoderTrainConfig, source: ImageSource, start: int, stop: int
+) -> Iterator[tuple[int, str, np.ndarray, np.ndarray]]:
+    """``(step, stage, images, bits)`` for steps ``start..stop-1``; stage is informed, joint or finetune."""
+    informed_sources: dict[int, ImageSource] = {}
     for step in range(start, stop):
         rng = np.random.default_rng([cfg.seed, step])
-        images = source.sample(rng, cfg.batch)
-        bits = rng.integers(0, 2, size=(cfg.batch, cfg.bits)).astype(np.float32)
-        yield step, images, bits
+        if step < cfg.informed_steps:
+            side, batch = informed_batch(cfg, step)
+            if side not in informed_sources:
+                informed_sources[side] = ImageSource(source.pool, side, cfg.procedural_fraction)
+            images, stage = informed_sources[side].sample(rng, batch), "informed"
+        else:
+            batch = cfg.batch
+            stage = "joint" if step < cfg.informed_steps + cfg.steps else "finetune"
+            images = source.sample(rng, batch)
+        bits = rng.integers(0, 2, size=(batch, cfg.bits)).astype(np.float32)
+        yield step, stage, images, bits
 
 
 def _machine() -> str:
@@ -513,7 +635,7 @@ def train_decoder(
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoint.msgpack"
     log = log or (lambda line: None)
-    state, (tx_joint, tx_ft) = init_state(cfg)
+    state, (tx_joint, tx_ft, tx_inf) = init_state(cfg)
     if resume and ckpt.is_file():
         state = load_checkpoint(ckpt, state, cfg)
         log(f"resumed from {ckpt} at step {state['step']}")
@@ -523,8 +645,9 @@ def train_decoder(
     source = training_source(cfg)
     eval_images = heldout_images(cfg.eval_images, cfg.size)
     eval_bits = heldout_messages(cfg.eval_images, cfg.bits)
-    total = cfg.steps + cfg.finetune_steps
+    total = cfg.informed_steps + cfg.steps + cfg.finetune_steps
     clean_steps = int(round(cfg.clean_fraction * cfg.steps))
+    clean_informed = int(round(cfg.clean_fraction * cfg.informed_steps))
     steps_fns: dict[str, Callable] = {}
     started = time.time()
     elapsed0 = float(state["elapsed_s"])
@@ -548,9 +671,15 @@ def train_decoder(
     try:
         running: dict[str, float] = {}
         skipped = 0
-        for step, images, bits in _batches(cfg, source, int(state["step"]), total):
-            if step < cfg.steps:
-                phase = "clean" if step < clean_steps else "augmented"
+        for step, stage, images, bits in _batches(cfg, source, int(state["step"]), total):
+            extra: tuple = (jnp.float32(psnr_schedule(cfg, max(step - cfg.informed_steps, 0))),)
+            if stage == "informed":
+                if "informed" not in steps_fns:
+                    steps_fns["informed"] = make_informed_step(cfg, tx_inf)
+                fn = steps_fns["informed"]
+                extra = (jnp.float32(informed_psnr(cfg, step)), jnp.bool_(step >= clean_informed))
+            elif stage == "joint":
+                phase = "clean" if step - cfg.informed_steps < clean_steps else "augmented"
                 if phase not in steps_fns:
                     steps_fns[phase] = make_joint_step(cfg, tx_joint, augmented=phase == "augmented")
                 fn = steps_fns[phase]
@@ -569,7 +698,7 @@ def train_decoder(
                 jnp.asarray(images),
                 jnp.asarray(bits),
                 key,
-                jnp.float32(psnr_schedule(cfg, step)),
+                *extra,
             )
             state.update(arrays)
             state["step"] = step + 1

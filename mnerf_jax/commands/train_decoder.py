@@ -25,6 +25,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="extra training images: every image file under this folder (e.g. COCO)",
     )
+    parser.add_argument(
+        "--informed-steps",
+        type=int,
+        default=d.informed_steps,
+        help=f"decoder steps against its own gradient watermark, first ({d.informed_steps})",
+    )
     parser.add_argument("--steps", type=int, default=d.steps, help=f"joint encoder+decoder steps ({d.steps})")
     parser.add_argument(
         "--finetune-steps",
@@ -57,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = DecoderTrainConfig(
         bits=args.bits,
+        informed_steps=args.informed_steps,
         steps=args.steps,
         finetune_steps=args.finetune_steps,
         size=args.size,
