@@ -30,9 +30,7 @@ Images come from ``decoder_images``. Every step's batch is drawn from
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
-import math
 import os
 import platform
 import time
@@ -40,7 +38,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import flax.linen as nn
 import flax.serialization
 import jax
 import jax.numpy as jnp
@@ -48,9 +45,9 @@ import numpy as np
 import optax
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import dwt, informed
+from mnerf_jax import dwt
+from mnerf_jax.decoder_eval import clean_accuracy, evaluate_sizes
 from mnerf_jax.decoder_images import (
-    EVAL_SEED,
     TRAIN_PHOTOS,
     ImageSource,
     heldout_images,
@@ -58,7 +55,9 @@ from mnerf_jax.decoder_images import (
     load_folder,
     load_photos,
 )
+from mnerf_jax.decoder_steps import make_finetune_step, make_informed_step, make_joint_step
 from mnerf_jax.errors import MnerfError
+from mnerf_jax.hidden_encoder import encode_batch, init_encoder
 
 # The parts of the training state that are arrays (and go through the jitted steps); the rest is bookkeeping.
 ARRAY_KEYS = ("encoder", "decoder", "opt", "opt_ft", "opt_inf")
@@ -113,251 +112,12 @@ class DecoderTrainConfig:
         return {k: v for k, v in self.to_dict().items() if k not in EVAL_FIELDS}
 
 
-# ------------------------------------------------------------------------------------------------------------
-# Encoder
-
-
-class ConvBNReLU(nn.Module):
-    features: int
-    kernel: int = 3
-
-    @nn.compact
-    def __call__(self, x: jax.Array, train: bool) -> jax.Array:
-        x = nn.Conv(self.features, (self.kernel, self.kernel), padding=self.kernel // 2)(x)
-        x = nn.BatchNorm(use_running_average=not train, momentum=0.9, epsilon=1e-3)(x)
-        return nn.relu(x)
-
-
-class LL2Encoder(nn.Module):
-    """HiDDeN encoder at LL2 resolution: ``(LL2/4 [B, h, w, 3], bits ±1 [B, L]) → pattern R [B, h, w, 3]``.
-
-    Conv-BN-ReLU features of the image, the message broadcast over space and concatenated to them, two more
-    blocks and a 1×1 convolution to three channels.
-    """
-
-    channels: int = 32
-    depth: int = 3
-
-    @nn.compact
-    def __call__(self, ll2_scaled: jax.Array, signs: jax.Array, train: bool) -> jax.Array:
-        f = ll2_scaled
-        for _ in range(self.depth):
-            f = ConvBNReLU(self.channels)(f, train)
-        msg = jnp.broadcast_to(signs[:, None, None, :], (*ll2_scaled.shape[:-1], signs.shape[-1]))
-        f = jnp.concatenate([msg, f, ll2_scaled], axis=-1)
-        f = ConvBNReLU(self.channels)(f, train)
-        f = ConvBNReLU(self.channels)(f, train)
-        return nn.Conv(3, (1, 1))(f)
-
-
-def init_encoder(key: jax.Array, bits: int, channels: int = 32, depth: int = 3) -> dict[str, Any]:
-    module = LL2Encoder(channels=channels, depth=depth)
-    init = jax.jit(lambda k: module.init(k, jnp.zeros((1, 8, 8, 3)), jnp.zeros((1, bits)), train=False))
-    return dict(init(key))
-
-
-def encode(
-    enc_vars: dict[str, Any],
-    images: jax.Array,
-    bits: jax.Array,
-    cfg: DecoderTrainConfig,
-    train: bool = False,
-    psnr: jax.Array | float | None = None,
-) -> tuple[jax.Array, Any]:
-    """Encoded images ``[B, H, W, 3]`` (clipped to [0, 1]) and the encoder's updated batch stats.
-
-    The residual is scaled to the RMS of ``psnr`` dB (default ``cfg.target_psnr``) before clipping.
-    """
-    psnr = cfg.target_psnr if psnr is None else psnr
-    module = LL2Encoder(channels=cfg.encoder_channels, depth=cfg.encoder_depth)
-    ll2 = dwt.ll2(images, cfg.wavelet)
-    signs = 2.0 * bits.astype(images.dtype) - 1.0
-    variables = {"params": enc_vars["params"], "batch_stats": enc_vars["batch_stats"]}
-    if train:
-        pattern, upd = module.apply(variables, ll2 / 4.0, signs, train=True, mutable=["batch_stats"])
-        stats = upd["batch_stats"]
-    else:
-        pattern, stats = module.apply(variables, ll2 / 4.0, signs, train=False), enc_vars["batch_stats"]
-    # The adjoint of the (linear) LL2 transform carries the pattern to image resolution as a smooth residual.
-    adjoint = jax.linear_transpose(lambda x: dwt.ll2(x, cfg.wavelet), images)
-    (residual,) = adjoint(pattern)
-    rms = jnp.sqrt(jnp.mean(residual**2, axis=(-3, -2, -1), keepdims=True) + 1e-12)
-    residual = residual * (10.0 ** (-jnp.asarray(psnr, images.dtype) / 20.0) / rms)
-    return jnp.clip(images + residual, 0.0, 1.0), stats
-
-
 def training_source(cfg: DecoderTrainConfig) -> ImageSource:
     """The training images of a run: the training photographs, ``cfg.images_dir``, procedural images."""
     pool = load_photos(TRAIN_PHOTOS)
     if cfg.images_dir:
         pool += load_folder(cfg.images_dir)
     return ImageSource(pool, cfg.size + cfg.crop_margin, cfg.procedural_fraction)
-
-
-# ------------------------------------------------------------------------------------------------------------
-# Steps
-
-
-def _augmenter(cfg: DecoderTrainConfig) -> Callable[[jax.Array, jax.Array], jax.Array]:
-    from mnerf_jax import augment
-
-    def apply(key: jax.Array, images: jax.Array) -> jax.Array:
-        return augment.random_policy(
-            key, images, strength=cfg.augment_strength, k=cfg.augment_k, p=cfg.augment_p
-        )
-
-    return apply
-
-
-def _message_loss(logits: jax.Array, bits: jax.Array, temperature: float) -> jax.Array:
-    from mnerf_jax import losses
-
-    return losses.bce_with_logits(logits, bits, temperature=temperature)
-
-
-def _bit_acc(logits: jax.Array, bits: jax.Array) -> jax.Array:
-    return jnp.mean((logits > 0) == (bits > 0.5))
-
-
-def _psnr(a: jax.Array, b: jax.Array) -> jax.Array:
-    mse = jnp.mean((a - b) ** 2, axis=(-3, -2, -1))
-    return jnp.mean(-10.0 * jnp.log10(jnp.maximum(mse, 1e-12)))
-
-
-def random_windows(key: jax.Array, images: jax.Array, size: int) -> jax.Array:
-    """A random ``size × size`` window of each image ``[B, H, W, C]`` (one offset per image).
-
-    The decoder then never sees the encoder's image borders at a fixed place, so a watermark that leans on
-    them (zero padding tells a small network where the border is) does not survive: the watermark has to be
-    stationary, and it then decodes at any image size.
-    """
-    b, h, w, c = images.shape
-    if (h, w) == (size, size):
-        return images
-    ky, kx = jax.random.split(key)
-    ys = jax.random.randint(ky, (b,), 0, h - size + 1)
-    xs = jax.random.randint(kx, (b,), 0, w - size + 1)
-    crop = lambda image, y, x: jax.lax.dynamic_slice(image, (y, x, 0), (size, size, c))
-    return jax.vmap(crop)(images, ys, xs)
-
-
-def _all_finite(tree: Any) -> jax.Array:
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(tree)]))
-
-
-def _unless_finite(grads: Any, new: dict[str, Any], old: dict[str, Any]) -> dict[str, Any]:
-    """``new`` where every gradient is finite, else ``old`` (the step is skipped).
-
-    A rare batch can give a non-finite gradient through an augmentation (seen once in a 16-bit run: Gaussian
-    blur followed by the HSV saturation change); one such step must not poison the weights.
-    """
-    ok = _all_finite(grads)
-    return jax.tree.map(lambda n, o: jnp.where(ok, n, o), new, old)
-
-
-def _metrics(loss: jax.Array, aux: dict[str, Any], grads: Any) -> dict[str, jax.Array]:
-    skipped = 1.0 - _all_finite(grads).astype(jnp.float32)
-    return {"loss": loss, "acc": aux["acc"], "psnr": aux["psnr"], "skipped": skipped}
-
-
-def make_joint_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation, augmented: bool) -> Callable:
-    """Jitted joint step: ``(state, images, bits, key, psnr) → (state, metrics)``."""
-    augment_fn = _augmenter(cfg) if augmented else None
-
-    def loss_fn(params, state, images, bits, key, psnr):
-        enc = {"params": params["encoder"], "batch_stats": state["encoder"]["batch_stats"]}
-        encoded, enc_stats = encode(enc, images, bits, cfg, train=True, psnr=psnr)
-        k_crop, k_aug = jax.random.split(key)
-        seen = random_windows(k_crop, encoded, cfg.size)
-        seen = augment_fn(k_aug, seen) if augment_fn is not None else seen
-        dec_vars = {"params": params["decoder"], "batch_stats": state["decoder"]["batch_stats"]}
-        logits, dec_stats = dec.apply_ll2_train(dec_vars, dwt.ll2(seen, cfg.wavelet))
-        loss = _message_loss(logits, bits, cfg.temperature)
-        aux = {
-            "enc_stats": enc_stats,
-            "dec_stats": dec_stats,
-            "acc": _bit_acc(logits, bits),
-            "psnr": _psnr(encoded, images),
-        }
-        return loss, aux
-
-    def step(state, images, bits, key, psnr):
-        params = {"encoder": state["encoder"]["params"], "decoder": state["decoder"]["params"]}
-        (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, state, images, bits, key, psnr)
-        updates, opt = tx.update(grads, state["opt"], params)
-        params = optax.apply_updates(params, updates)
-        new = dict(state)
-        new["encoder"] = {"params": params["encoder"], "batch_stats": aux["enc_stats"]}
-        new["decoder"] = {"params": params["decoder"], "batch_stats": aux["dec_stats"]}
-        new["opt"] = opt
-        return _unless_finite(grads, new, state), _metrics(loss, aux, grads)
-
-    return jax.jit(step, donate_argnums=0)
-
-
-def make_finetune_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation) -> Callable:
-    """Jitted encoder-only step through the frozen (eval-mode, whitened) decoder.
-
-    Half of the steps see the augmented encoded images, unless the run never augments (``clean_fraction`` 1).
-    """
-    augment_fn = _augmenter(cfg) if cfg.clean_fraction < 1.0 else (lambda key, images: images)
-
-    def loss_fn(enc_params, state, images, bits, key):
-        enc = {"params": enc_params, "batch_stats": state["encoder"]["batch_stats"]}
-        encoded, enc_stats = encode(enc, images, bits, cfg, train=True)
-        k_apply, k_aug, k_crop = jax.random.split(key, 3)
-        window = random_windows(k_crop, encoded, cfg.size)
-        # Half the steps see the clean encoded image: the no-attack accuracy matters as much as robustness.
-        seen = jnp.where(jax.random.uniform(k_apply) < 0.5, augment_fn(k_aug, window), window)
-        logits = dec.apply_ll2(state["decoder"], dwt.ll2(seen, cfg.wavelet))
-        loss = _message_loss(logits, bits, cfg.temperature)
-        return loss, {"enc_stats": enc_stats, "acc": _bit_acc(logits, bits), "psnr": _psnr(encoded, images)}
-
-    def step(state, images, bits, key, psnr):
-        del psnr  # always the target
-        enc_params = state["encoder"]["params"]
-        (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(enc_params, state, images, bits, key)
-        updates, opt = tx.update(grads, state["opt_ft"], enc_params)
-        new = dict(state)
-        new["encoder"] = {"params": optax.apply_updates(enc_params, updates), "batch_stats": aux["enc_stats"]}
-        new["opt_ft"] = opt
-        return _unless_finite(grads, new, state), _metrics(loss, aux, grads)
-
-    return jax.jit(step, donate_argnums=0)
-
-
-def make_informed_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation) -> Callable:
-    """Jitted decoder step against the informed encoder: ``(state, images, bits, key, psnr, augmented)``.
-
-    The watermark is the decoder's own (train-mode) message gradient scaled to ``psnr`` dB
-    (``informed.informed_embed``, one iteration); the decoder then reads the encoded images, through the
-    augmentation layer where ``augmented`` is true, and both uses of the decoder are differentiated.
-    """
-    augment_fn = _augmenter(cfg)
-
-    def loss_fn(params, state, images, bits, key, psnr, augmented):
-        stats = state["decoder"]["batch_stats"]
-        read = lambda x: dec.apply_ll2_train(
-            {"params": params, "batch_stats": stats}, dwt.ll2(x, cfg.wavelet)
-        )
-        encoded = informed.informed_embed(lambda x: read(x)[0], images, bits, psnr)
-        seen = jnp.where(augmented, augment_fn(key, encoded), encoded)
-        logits, dec_stats = read(seen)
-        loss = _message_loss(logits, bits, cfg.temperature)
-        return loss, {"dec_stats": dec_stats, "acc": _bit_acc(logits, bits), "psnr": _psnr(encoded, images)}
-
-    def step(state, images, bits, key, psnr, augmented):
-        params = state["decoder"]["params"]
-        (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            params, state, images, bits, key, psnr, augmented
-        )
-        updates, opt = tx.update(grads, state["opt_inf"], params)
-        new = dict(state)
-        new["decoder"] = {"params": optax.apply_updates(params, updates), "batch_stats": aux["dec_stats"]}
-        new["opt_inf"] = opt
-        return _unless_finite(grads, new, state), _metrics(loss, aux, grads)
-
-    return jax.jit(step, donate_argnums=0)
 
 
 def informed_psnr(cfg: DecoderTrainConfig, step: int) -> float:
@@ -461,125 +221,6 @@ def load_checkpoint(path: Path, template: dict[str, Any], cfg: DecoderTrainConfi
     state["elapsed_s"] = float(state["elapsed_s"])
     state["whitening_report"] = {k: float(v) for k, v in state["whitening_report"].items()}
     return state
-
-
-# ------------------------------------------------------------------------------------------------------------
-# Evaluation
-
-
-def evaluate(
-    cfg: DecoderTrainConfig,
-    enc_vars: dict[str, Any],
-    dec_vars: dict[str, Any],
-    images: np.ndarray,
-    bits: np.ndarray,
-    batch: int = 32,
-) -> dict[str, float]:
-    """Bit accuracy with no attack and under the augmentation policy (several draws), and PSNR, on a set."""
-    draws = cfg.eval_augment_draws
-    augment_fn = _augmenter(cfg) if draws > 0 else None
-
-    # The variables are arguments, not closed-over constants (XLA would fold them at length).
-    @jax.jit
-    def run(enc_vars, dec_vars, x, m, key):
-        encoded, _ = encode(enc_vars, x, m, cfg, train=False)
-        clean = dec.apply_ll2(dec_vars, dwt.ll2(encoded, cfg.wavelet))
-        acc_clean = jnp.mean((clean > 0) == (m > 0.5), axis=-1)
-        if augment_fn is None:
-            acc_low = jnp.full_like(acc_clean, jnp.nan)
-        else:
-            # lax.map, not vmap: a batched policy index would run every augmentation branch.
-            attacked = jax.lax.map(
-                lambda k: dec.apply_ll2(dec_vars, dwt.ll2(augment_fn(k, encoded), cfg.wavelet)),
-                jax.random.split(key, draws),
-            )
-            acc_low = jnp.mean((attacked > 0) == (m > 0.5)[None], axis=(0, -1))
-        mse = jnp.mean((encoded - x) ** 2, axis=(-3, -2, -1))
-        return acc_clean, acc_low, -10.0 * jnp.log10(jnp.maximum(mse, 1e-12))
-
-    acc_clean, acc_low, psnr = [], [], []
-    for i in range(0, len(images), batch):
-        a, b, p = run(
-            enc_vars,
-            dec_vars,
-            jnp.asarray(images[i : i + batch]),
-            jnp.asarray(bits[i : i + batch]),
-            jax.random.fold_in(jax.random.PRNGKey(EVAL_SEED), i),
-        )
-        acc_clean.append(np.asarray(a))
-        acc_low.append(np.asarray(b))
-        psnr.append(np.asarray(p))
-    acc_clean, acc_low, psnr = map(np.concatenate, (acc_clean, acc_low, psnr))
-    low = float(acc_low.mean())
-    return {
-        "bit_acc_none": float(acc_clean.mean()),
-        "bit_acc_low": None if math.isnan(low) else low,
-        "psnr_mean": float(psnr.mean()),
-        "psnr_min": float(psnr.min()),
-        "images": int(len(images)),
-        "informed": {
-            f"{n}_iterations": evaluate_informed(cfg, dec_vars, images, bits, n, batch)
-            for n in cfg.eval_informed_iterations
-        },
-    }
-
-
-def evaluate_informed(
-    cfg: DecoderTrainConfig,
-    dec_vars: dict[str, Any],
-    images: np.ndarray,
-    bits: np.ndarray,
-    iterations: int,
-    batch: int = 32,
-) -> dict[str, float | None]:
-    """Bit accuracy (no attack, Low) and PSNR of informed embeddings (``informed.informed_embed``) of a set.
-
-    This is how a radiance field carries the watermark (it follows the decoder's gradient), so these figures
-    predict MultiNeRF's; the encoder's figures (``evaluate``) are the HiDDeN protocol.
-    """
-    draws = cfg.eval_augment_draws
-    augment_fn = _augmenter(cfg)
-
-    @jax.jit
-    def run(dec_vars, x, m, key):
-        read = lambda y: dec.apply_ll2(dec_vars, dwt.ll2(y, cfg.wavelet))
-        encoded = informed.informed_embed(read, x, m, cfg.target_psnr, iterations)
-        acc_clean = jnp.mean((read(encoded) > 0) == (m > 0.5), axis=-1)
-        attacked = jax.lax.map(lambda k: read(augment_fn(k, encoded)), jax.random.split(key, max(draws, 1)))
-        acc_low = jnp.mean((attacked > 0) == (m > 0.5)[None], axis=(0, -1))
-        mse = jnp.mean((encoded - x) ** 2, axis=(-3, -2, -1))
-        return acc_clean, acc_low, -10.0 * jnp.log10(jnp.maximum(mse, 1e-12))
-
-    parts = [
-        run(
-            dec_vars,
-            jnp.asarray(images[i : i + batch]),
-            jnp.asarray(bits[i : i + batch]),
-            jax.random.fold_in(jax.random.PRNGKey(EVAL_SEED), i),
-        )
-        for i in range(0, len(images), batch)
-    ]
-    acc_clean, acc_low, psnr = (np.concatenate([np.asarray(p[j]) for p in parts]) for j in range(3))
-    return {
-        "bit_acc_none": float(acc_clean.mean()),
-        "bit_acc_low": float(acc_low.mean()) if draws > 0 else None,
-        "psnr_mean": float(psnr.mean()),
-        "psnr_min": float(psnr.min()),
-    }
-
-
-def encode_batch(
-    cfg: DecoderTrainConfig, enc_vars: dict[str, Any], images: np.ndarray, bits: np.ndarray
-) -> np.ndarray:
-    """Encoded images as float32 in [0, 1] (eval mode)."""
-    return np.asarray(_encode_eval(enc_vars, jnp.asarray(images), jnp.asarray(bits), cfg))
-
-
-@functools.partial(jax.jit, static_argnames=("cfg",))
-def _encode_eval(
-    enc_vars: dict[str, Any], images: jax.Array, bits: jax.Array, cfg: DecoderTrainConfig
-) -> jax.Array:
-    return encode(enc_vars, images, bits, cfg)[0]
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -731,18 +372,6 @@ def train_decoder(
     return finish(cfg, state, out, wall)
 
 
-def _clean_accuracy(
-    cfg: DecoderTrainConfig,
-    enc_vars: dict[str, Any],
-    dec_vars: dict[str, Any],
-    images: np.ndarray,
-    bits: np.ndarray,
-) -> float:
-    encoded = encode_batch(cfg, enc_vars, images, bits)
-    logits = dec.decode_logits(dec_vars, jnp.asarray(encoded), cfg.wavelet)
-    return float(jnp.mean((logits > 0) == (jnp.asarray(bits) > 0.5)))
-
-
 def whiten_state(
     cfg: DecoderTrainConfig,
     state: dict[str, Any],
@@ -755,7 +384,7 @@ def whiten_state(
     Returns the held-out no-attack accuracy of the current encoder through the decoder before and after
     whitening (the second is typically near chance: the encoder has not been fine-tuned yet).
     """
-    before = _clean_accuracy(cfg, state["encoder"], state["decoder"], eval_images, eval_bits)
+    before = clean_accuracy(cfg, state["encoder"], state["decoder"], eval_images, eval_bits)
     rng = np.random.default_rng([cfg.seed, 1_000_000_007])
     batches = []
     n = cfg.whiten_images
@@ -764,21 +393,8 @@ def whiten_state(
         batches.append(dwt.ll2(jnp.asarray(images), cfg.wavelet))
     state["decoder"] = dec.fit_whitening(state["decoder"], batches)
     state["whitened"] = True
-    after = _clean_accuracy(cfg, state["encoder"], state["decoder"], eval_images, eval_bits)
+    after = clean_accuracy(cfg, state["encoder"], state["decoder"], eval_images, eval_bits)
     return {"bit_acc_none_raw_decoder": before, "bit_acc_none_whitened_before_finetune": after}
-
-
-def evaluate_sizes(
-    cfg: DecoderTrainConfig, enc_vars: dict[str, Any], dec_vars: dict[str, Any]
-) -> dict[str, Any]:
-    """Held-out figures at every side in ``cfg.eval_sizes``: ``{"64px": {...}, "256px": {...}}``."""
-    out = {}
-    for size in cfg.eval_sizes:
-        images = heldout_images(cfg.eval_images, size)
-        out[f"{size}px"] = evaluate(
-            cfg, enc_vars, dec_vars, images, heldout_messages(cfg.eval_images, cfg.bits)
-        )
-    return out
 
 
 def finish(cfg: DecoderTrainConfig, state: dict[str, Any], out: Path, wall: float) -> dict[str, Any]:

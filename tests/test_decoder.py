@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import decoder_train, dwt, informed
+from mnerf_jax import decoder_steps, decoder_train, dwt, hidden_encoder, informed
 from mnerf_jax.errors import MnerfError
 
 
@@ -255,7 +255,7 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
     assert saved_cfg == cfg
     with np.load(tmp_path / "check.npz", allow_pickle=False) as check:
         stored, message = check["images"], check["bits"]
-    again = decoder_train.encode_batch(cfg, encoder, decoder_train.heldout_images(4, 32), message)
+    again = hidden_encoder.encode_batch(cfg, encoder, decoder_train.heldout_images(4, 32), message)
     np.testing.assert_array_equal(np.round(again * 255).astype(np.uint8), stored)  # the encoder round-trips
     with pytest.raises(MnerfError, match="pass --resume"):
         decoder_train.train_decoder(cfg, tmp_path, progress=False)
@@ -284,10 +284,10 @@ def test_checkpoint_round_trip(tmp_path: Path) -> None:
 def test_non_finite_gradient_skips_the_step() -> None:
     old = {"w": jnp.ones(3), "opt": jnp.zeros(2)}
     new = {"w": jnp.full(3, 2.0), "opt": jnp.ones(2)}
-    kept = decoder_train._unless_finite({"g": jnp.array([0.1, jnp.nan])}, new, old)
+    kept = decoder_steps._unless_finite({"g": jnp.array([0.1, jnp.nan])}, new, old)
     np.testing.assert_array_equal(kept["w"], old["w"])
     np.testing.assert_array_equal(kept["opt"], old["opt"])
-    taken = decoder_train._unless_finite({"g": jnp.array([0.1, 0.2])}, new, old)
+    taken = decoder_steps._unless_finite({"g": jnp.array([0.1, 0.2])}, new, old)
     np.testing.assert_array_equal(taken["w"], new["w"])
 
 
@@ -310,10 +310,10 @@ def test_informed_embedding_follows_the_decoder_gradient() -> None:
 
 def test_encoder_respects_psnr() -> None:
     cfg = decoder_train.DecoderTrainConfig(bits=16, target_psnr=35.5)
-    enc = decoder_train.init_encoder(jax.random.PRNGKey(0), 16)
+    enc = hidden_encoder.init_encoder(jax.random.PRNGKey(0), 16)
     images = jnp.asarray(decoder_train.heldout_images(4, 48))
     bits = jnp.asarray(decoder_train.heldout_messages(4, 16))
-    encoded, _ = decoder_train.encode(enc, images, bits, cfg)
+    encoded, _ = hidden_encoder.encode(enc, images, bits, cfg)
     assert encoded.shape == images.shape
     assert float(encoded.min()) >= 0.0 and float(encoded.max()) <= 1.0
     mse = jnp.mean((encoded - images) ** 2, axis=(1, 2, 3))
