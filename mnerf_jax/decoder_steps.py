@@ -135,31 +135,30 @@ def make_finetune_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation
     return jax.jit(step, donate_argnums=0)
 
 
-def make_informed_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation) -> Callable:
-    """Jitted decoder step against the informed encoder: ``(state, images, bits, key, psnr, augmented)``.
+def make_informed_step(
+    cfg: DecoderTrainConfig, tx: optax.GradientTransformation, augmented: bool
+) -> Callable:
+    """Jitted decoder step against the informed encoder: ``(state, images, bits, key, psnr)``.
 
     The watermark is the decoder's own (train-mode) message gradient scaled to ``psnr`` dB
     (``informed.informed_embed``, one iteration); the decoder then reads the encoded images, through the
-    augmentation layer where ``augmented`` is true, and both uses of the decoder are differentiated.
+    augmentation layer if ``augmented``, and both uses of the decoder are differentiated.
     """
-    augment_fn = policy(cfg)
+    augment_fn = policy(cfg) if augmented else (lambda key, images: images)
 
-    def loss_fn(params, state, images, bits, key, psnr, augmented):
+    def loss_fn(params, state, images, bits, key, psnr):
         stats = state["decoder"]["batch_stats"]
         read = lambda x: dec.apply_ll2_train(
             {"params": params, "batch_stats": stats}, dwt.ll2(x, cfg.wavelet)
         )
         encoded = informed.informed_embed(lambda x: read(x)[0], images, bits, psnr)
-        seen = jnp.where(augmented, augment_fn(key, encoded), encoded)
-        logits, dec_stats = read(seen)
+        logits, dec_stats = read(augment_fn(key, encoded))
         loss = _message_loss(logits, bits, cfg.temperature)
         return loss, {"dec_stats": dec_stats, "acc": _bit_acc(logits, bits), "psnr": _psnr(encoded, images)}
 
-    def step(state, images, bits, key, psnr, augmented):
+    def step(state, images, bits, key, psnr):
         params = state["decoder"]["params"]
-        (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            params, state, images, bits, key, psnr, augmented
-        )
+        (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, state, images, bits, key, psnr)
         updates, opt = tx.update(grads, state["opt_inf"], params)
         new = dict(state)
         new["decoder"] = {"params": optax.apply_updates(params, updates), "batch_stats": aux["dec_stats"]}

@@ -315,10 +315,11 @@ def train_decoder(
         for step, stage, images, bits in _batches(cfg, source, int(state["step"]), total):
             extra: tuple = (jnp.float32(psnr_schedule(cfg, max(step - cfg.informed_steps, 0))),)
             if stage == "informed":
-                if "informed" not in steps_fns:
-                    steps_fns["informed"] = make_informed_step(cfg, tx_inf)
-                fn = steps_fns["informed"]
-                extra = (jnp.float32(informed_psnr(cfg, step)), jnp.bool_(step >= clean_informed))
+                phase = "informed, augmented" if step >= clean_informed else "informed, clean"
+                if phase not in steps_fns:
+                    steps_fns[phase] = make_informed_step(cfg, tx_inf, augmented=phase.endswith("augmented"))
+                fn = steps_fns[phase]
+                extra = (jnp.float32(informed_psnr(cfg, step)),)
             elif stage == "joint":
                 phase = "clean" if step - cfg.informed_steps < clean_steps else "augmented"
                 if phase not in steps_fns:
