@@ -69,6 +69,19 @@ def _metrics(loss: jax.Array, aux: dict[str, Any], grads: Any) -> dict[str, jax.
     return {"loss": loss, "acc": aux["acc"], "psnr": aux["psnr"], "skipped": skipped}
 
 
+def _update_part(
+    tx: optax.GradientTransformation, state: dict[str, Any], part: str, opt_key: str, grads: Any, stats: Any
+) -> dict[str, Any]:
+    """``state`` with one network (``part``: encoder or decoder) stepped by ``tx`` on ``grads`` and its batch
+    statistics replaced by ``stats``; unchanged if a gradient is not finite."""
+    params = state[part]["params"]
+    updates, opt = tx.update(grads, state[opt_key], params)
+    new = dict(state)
+    new[part] = {"params": optax.apply_updates(params, updates), "batch_stats": stats}
+    new[opt_key] = opt
+    return _unless_finite(grads, new, state)
+
+
 def make_joint_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation, augmented: bool) -> Callable:
     """Jitted joint step: ``(state, images, bits, key, psnr) → (state, metrics)``."""
     augment_fn = policy(cfg) if augmented else None
@@ -126,11 +139,8 @@ def make_finetune_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation
         del psnr  # always the target
         enc_params = state["encoder"]["params"]
         (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(enc_params, state, images, bits, key)
-        updates, opt = tx.update(grads, state["opt_ft"], enc_params)
-        new = dict(state)
-        new["encoder"] = {"params": optax.apply_updates(enc_params, updates), "batch_stats": aux["enc_stats"]}
-        new["opt_ft"] = opt
-        return _unless_finite(grads, new, state), _metrics(loss, aux, grads)
+        new = _update_part(tx, state, "encoder", "opt_ft", grads, aux["enc_stats"])
+        return new, _metrics(loss, aux, grads)
 
     return jax.jit(step, donate_argnums=0)
 
@@ -159,10 +169,7 @@ def make_informed_step(
     def step(state, images, bits, key, psnr):
         params = state["decoder"]["params"]
         (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, state, images, bits, key, psnr)
-        updates, opt = tx.update(grads, state["opt_inf"], params)
-        new = dict(state)
-        new["decoder"] = {"params": optax.apply_updates(params, updates), "batch_stats": aux["dec_stats"]}
-        new["opt_inf"] = opt
-        return _unless_finite(grads, new, state), _metrics(loss, aux, grads)
+        new = _update_part(tx, state, "decoder", "opt_inf", grads, aux["dec_stats"])
+        return new, _metrics(loss, aux, grads)
 
     return jax.jit(step, donate_argnums=0)
