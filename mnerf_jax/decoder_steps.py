@@ -152,7 +152,8 @@ def make_informed_step(
 
     The watermark is the decoder's own (train-mode) message gradient scaled to ``psnr`` dB
     (``informed.informed_embed``, one iteration); the decoder then reads the encoded images, through the
-    augmentation layer if ``augmented``, and both uses of the decoder are differentiated.
+    augmentation layer if ``augmented``, and both uses of the decoder are differentiated. With
+    ``informed_margin`` the decoder reads a random window of each encoded image, ``informed_margin`` smaller.
     """
     augment_fn = policy(cfg) if augmented else (lambda key, images: images)
 
@@ -162,7 +163,9 @@ def make_informed_step(
             {"params": params, "batch_stats": stats}, dwt.ll2(x, cfg.wavelet)
         )
         encoded = informed.informed_embed(lambda x: read(x)[0], images, bits, psnr)
-        logits, dec_stats = read(augment_fn(key, encoded))
+        k_crop, k_aug = jax.random.split(key)
+        window = random_windows(k_crop, encoded, images.shape[1] - cfg.informed_margin)
+        logits, dec_stats = read(augment_fn(k_aug, window))
         loss = _message_loss(logits, bits, cfg.temperature)
         return loss, {"dec_stats": dec_stats, "acc": _bit_acc(logits, bits), "psnr": _psnr(encoded, images)}
 

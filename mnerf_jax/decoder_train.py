@@ -73,6 +73,9 @@ class DecoderTrainConfig:
     bits: int = 16
     informed_steps: int = 4000  # decoder steps against the informed (gradient) encoder, first
     informed_sizes: tuple[int, ...] = (64, 128)  # image sides of the informed steps, in turn
+    # Informed crops are encoded at side + margin and the decoder reads a random side × side window of each,
+    # so only watermarks that survive a shift pay (what a 3D field can carry); 0: whole crops.
+    informed_margin: int = 0
     informed_start_psnr: float = 28.0  # curriculum of the informed steps (reaches target_psnr like the joint)
     steps: int = 0  # joint encoder+decoder steps, after the informed ones
     finetune_steps: int = 1500  # encoder-only steps through the whitened decoder
@@ -237,7 +240,8 @@ def _batches(
         if step < cfg.informed_steps:
             side, batch = informed_batch(cfg, step)
             if side not in informed_sources:
-                informed_sources[side] = ImageSource(source.pool, side, cfg.procedural_fraction)
+                side_encoded = side + cfg.informed_margin
+                informed_sources[side] = ImageSource(source.pool, side_encoded, cfg.procedural_fraction)
             images, stage = informed_sources[side].sample(rng, batch), "informed"
         else:
             batch = cfg.batch

@@ -265,6 +265,24 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
         decoder_train.train_decoder(other, tmp_path, resume=True, progress=False)
 
 
+def test_informed_step_with_a_margin_reads_windows_and_updates_the_decoder() -> None:
+    """With ``informed_margin`` the decoder reads a smaller random window of each encoded image; the step
+    still updates the decoder, with finite metrics."""
+    cfg = decoder_train.DecoderTrainConfig(bits=8, size=16, informed_margin=4, batch=2, informed_steps=4)
+    state, (_, _, tx_inf) = decoder_train.init_state(cfg)
+    step = decoder_steps.make_informed_step(cfg, tx_inf, augmented=False)
+    arrays = {k: state[k] for k in decoder_train.ARRAY_KEYS}
+    before = jax.tree.map(np.asarray, arrays["decoder"]["params"])
+    images = jnp.asarray(decoder_train.heldout_images(2, 20))
+    bits = jnp.asarray(decoder_train.heldout_messages(2, 8))
+    for i in range(2):  # the learning rate warms up from 0 at the first step
+        arrays, metrics = step(arrays, images, bits, jax.random.PRNGKey(i), jnp.float32(25.0))
+        assert all(np.isfinite(float(v)) for v in metrics.values()) and float(metrics["skipped"]) == 0.0
+    after = arrays["decoder"]["params"]
+    moved = jax.tree.map(lambda a, b: float(np.abs(np.asarray(a) - b).max()), after, before)
+    assert max(jax.tree.leaves(moved)) > 0.0
+
+
 def test_checkpoint_round_trip(tmp_path: Path) -> None:
     cfg = decoder_train.DecoderTrainConfig(bits=8)
     state, _ = decoder_train.init_state(cfg)

@@ -31,6 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.informed_steps,
         help=f"decoder steps against its own gradient watermark, first ({d.informed_steps})",
     )
+    parser.add_argument(
+        "--informed-margin",
+        type=int,
+        default=d.informed_margin,
+        help="informed stage: encode crops this much larger and read a random window of each, so only "
+        f"shift-robust watermarks pay ({d.informed_margin}: whole crops)",
+    )
     parser.add_argument("--steps", type=int, default=d.steps, help=f"joint encoder+decoder steps ({d.steps})")
     parser.add_argument(
         "--finetune-steps",
@@ -64,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = DecoderTrainConfig(
         bits=args.bits,
         informed_steps=args.informed_steps,
+        informed_margin=args.informed_margin,
         steps=args.steps,
         finetune_steps=args.finetune_steps,
         size=args.size,
