@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mnerf_jax import dwt
+from mnerf_jax import dwt, informed
 
 if TYPE_CHECKING:
     from mnerf_jax.decoder_train import DecoderTrainConfig
@@ -85,8 +85,7 @@ def encode(
     # The adjoint of the (linear) LL2 transform carries the pattern to image resolution as a smooth residual.
     adjoint = jax.linear_transpose(lambda x: dwt.ll2(x, cfg.wavelet), images)
     (residual,) = adjoint(pattern)
-    rms = jnp.sqrt(jnp.mean(residual**2, axis=(-3, -2, -1), keepdims=True) + 1e-12)
-    residual = residual * (10.0 ** (-jnp.asarray(psnr, images.dtype) / 20.0) / rms)
+    residual = informed.scale_to_psnr(residual, psnr)
     return jnp.clip(images + residual, 0.0, 1.0), stats
 
 
