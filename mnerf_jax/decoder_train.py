@@ -317,18 +317,16 @@ def train_decoder(
         running: dict[str, float] = {}
         skipped = 0
         for step, stage, images, bits in _batches(cfg, source, int(state["step"]), total):
-            extra: tuple = (jnp.float32(psnr_schedule(cfg, max(step - cfg.informed_steps, 0))),)
             if stage == "informed":
                 phase = "informed, augmented" if step >= clean_informed else "informed, clean"
                 if phase not in steps_fns:
                     steps_fns[phase] = make_informed_step(cfg, tx_inf, augmented=phase.endswith("augmented"))
-                fn = steps_fns[phase]
-                extra = (jnp.float32(informed_psnr(cfg, step)),)
+                fn, psnr = steps_fns[phase], informed_psnr(cfg, step)
             elif stage == "joint":
                 phase = "clean" if step - cfg.informed_steps < clean_steps else "augmented"
                 if phase not in steps_fns:
                     steps_fns[phase] = make_joint_step(cfg, tx_joint, augmented=phase == "augmented")
-                fn = steps_fns[phase]
+                fn, psnr = steps_fns[phase], psnr_schedule(cfg, step - cfg.informed_steps)
             else:
                 if not state["whitened"]:
                     state["whitening_report"] = whiten_state(cfg, state, source, eval_images, eval_bits)
@@ -337,14 +335,14 @@ def train_decoder(
                     checkpoint()
                 if "finetune" not in steps_fns:
                     steps_fns["finetune"] = make_finetune_step(cfg, tx_ft)
-                fn = steps_fns["finetune"]
+                fn, psnr = steps_fns["finetune"], cfg.target_psnr
             key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed + 1), step)
             arrays, metrics = fn(
                 {k: state[k] for k in ARRAY_KEYS},
                 jnp.asarray(images),
                 jnp.asarray(bits),
                 key,
-                *extra,
+                jnp.float32(psnr),
             )
             state.update(arrays)
             state["step"] = step + 1
@@ -453,17 +451,3 @@ def finish(cfg: DecoderTrainConfig, state: dict[str, Any], out: Path, wall: floa
     )
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True))
     return metrics
-
-
-def load_encoder(path: str | Path) -> tuple[dict[str, Any], DecoderTrainConfig]:
-    """The encoder variables and the training config from an ``encoder.npz`` written by a run."""
-    arrays, meta = {}, {}
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {name: np.array(data[name]) for name in data.files}
-        meta = json.loads(arrays.pop("__metadata__").tobytes().decode())
-    except (OSError, ValueError, KeyError) as err:
-        raise MnerfError(f"encoder file {path} is unreadable ({err})") from None
-    known = {f.name for f in dataclasses.fields(DecoderTrainConfig)}
-    values = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["config"].items() if k in known}
-    return jax.tree.map(jnp.asarray, dec._unflatten(arrays)), DecoderTrainConfig(**values)

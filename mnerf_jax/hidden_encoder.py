@@ -7,7 +7,10 @@ transform and scaled per image to a fixed RMS, so every encoded image has a PSNR
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import json
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import flax.linen as nn
@@ -15,7 +18,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mnerf_jax import decoder as dec
 from mnerf_jax import dwt, informed
+from mnerf_jax.errors import MnerfError
 
 if TYPE_CHECKING:
     from mnerf_jax.decoder_train import DecoderTrainConfig
@@ -101,3 +106,19 @@ def _encode_eval(
     enc_vars: dict[str, Any], images: jax.Array, bits: jax.Array, cfg: DecoderTrainConfig
 ) -> jax.Array:
     return encode(enc_vars, images, bits, cfg)[0]
+
+
+def load_encoder(path: str | Path) -> tuple[dict[str, Any], DecoderTrainConfig]:
+    """The encoder variables and the training config from an ``encoder.npz`` written by a run."""
+    from mnerf_jax.decoder_train import DecoderTrainConfig  # the config module imports this one
+
+    arrays, meta = {}, {}
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: np.array(data[name]) for name in data.files}
+        meta = json.loads(arrays.pop("__metadata__").tobytes().decode())
+    except (OSError, ValueError, KeyError) as err:
+        raise MnerfError(f"encoder file {path} is unreadable ({err})") from None
+    known = {f.name for f in dataclasses.fields(DecoderTrainConfig)}
+    values = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["config"].items() if k in known}
+    return jax.tree.map(jnp.asarray, dec._unflatten(arrays)), DecoderTrainConfig(**values)

@@ -251,7 +251,7 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
     loaded = dec.load_decoder(tmp_path / "decoder.npz", expect_bits=8)
     assert loaded.metadata["whitened"] is True
     assert json.loads((tmp_path / "metrics.json").read_text())["fingerprint"] == loaded.fingerprint
-    encoder, saved_cfg = decoder_train.load_encoder(tmp_path / "encoder.npz")
+    encoder, saved_cfg = hidden_encoder.load_encoder(tmp_path / "encoder.npz")
     assert saved_cfg == cfg
     with np.load(tmp_path / "check.npz", allow_pickle=False) as check:
         stored, message = check["images"], check["bits"]
