@@ -56,7 +56,8 @@ class SampleBudgets:
     last_samples: int = 0  # ... and its samples per ray (to scale it to a new grid)
     headroom: float = 1.25  # slack over the largest count seen when a budget is refitted
     growth: float = 1.5  # after an overflow: the count times this (counts rise fast early on)
-    shrink_below: float = 0.5  # refit only budgets used below this fraction
+    shrink_below: float = 0.5  # refit only budgets used below this fraction ...
+    shrink_large_to: float = 0.75  # ... or, from LARGE_BUDGET slots on, when the new size is at most this
     min_remaining: int = 30  # ... and only with at least this many steps left in the phase
 
     def for_step(self, step: int) -> tuple[int, int]:
@@ -107,8 +108,13 @@ class SampleBudgets:
         sizes = []
         for name in ("density", "colour"):
             peak, size = getattr(self, f"peak_{name}"), getattr(self, name)
-            if peak and peak * self.headroom < self.shrink_below * size and remaining >= self.min_remaining:
-                size = min(cap, ladder(peak * self.headroom))
+            fitted = min(cap, ladder(peak * self.headroom))
+            if size >= LARGE_BUDGET:  # every step's share of the slack is large: a smaller rung pays
+                worth = fitted <= self.shrink_large_to * size
+            else:
+                worth = peak * self.headroom < self.shrink_below * size
+            if peak and worth and remaining >= self.min_remaining:
+                size = fitted
             sizes.append(size)
         self.peak_density = self.peak_colour = 0
         if tuple(sizes) != (self.density, self.colour):
@@ -130,13 +136,22 @@ class SampleBudgets:
 
 
 REFIT_AFTER = (8, 32, 100)  # steps into a phase at which budgets may shrink ...
-REFIT_EVERY = 250  # ... and then every this many steps
+REFIT_EVERY = 250  # ... and then every this many steps ...
+REFIT_EVERY_LARGE = 25  # ... or this many while a budget has LARGE_BUDGET slots or more
+# From this size on a step spends about a second on colour (2-core CPU, 1 M colour slots: the MLP alone
+# ~1.1 s forward+backward), so a compilation (~3.5 s) is repaid within a few dozen steps. The colour count
+# falls steeply while a field sharpens (lego at 800^2, 128^3: ~930 k per 4096 rays at step 60, ~120 k at
+# step 300), and refits only at REFIT_AFTER / REFIT_EVERY kept the 1 M budget until step 250.
+LARGE_BUDGET = 1 << 19
 
 
-def refit_due(step: int, phase_start: int) -> bool:
+def refit_due(step: int, phase_start: int, budgets: SampleBudgets | None = None) -> bool:
     """Whether budgets are refitted after ``step`` steps (a phase began at ``phase_start``)."""
     local = step - phase_start
-    return local in REFIT_AFTER or (local > 0 and local % REFIT_EVERY == 0)
+    if local in REFIT_AFTER or (local > 0 and local % REFIT_EVERY == 0):
+        return True
+    large = budgets is not None and max(budgets.density, budgets.colour) >= LARGE_BUDGET
+    return large and local > 0 and local % REFIT_EVERY_LARGE == 0
 
 
 @functools.partial(jax.jit, static_argnames=("n_samples",))

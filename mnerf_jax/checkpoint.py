@@ -29,23 +29,27 @@ from mnerf_jax.errors import MnerfError
 
 CHECKPOINT_SUBDIR = "checkpoints"
 
-# Train fields that only change bookkeeping, not the trajectory of the optimisation.
-_TRAIN_BOOKKEEPING = ("checkpoint_every", "log_every", "keep_checkpoints")
+# Fields that only change bookkeeping or how work is chunked, not the trajectory of the optimisation.
+_BOOKKEEPING = {"train": ("checkpoint_every", "log_every", "keep_checkpoints"), "render": ("chunk",)}
 
 
 class CheckpointError(MnerfError):
     """A checkpoint that is missing, unreadable, or from an incompatible config."""
 
 
+def _without_bookkeeping(values: Mapping[str, Any], sections: tuple[str, ...]) -> dict:
+    fields = {name: values.get(name, {}) for name in sections}
+    for name, keys in _BOOKKEEPING.items():
+        if isinstance(fields.get(name), Mapping):
+            fields[name] = {k: v for k, v in fields[name].items() if k not in keys}
+    return fields
+
+
 def fingerprint_fields(
     config: Config, sections: tuple[str, ...] = ("data", "model", "render", "train")
 ) -> dict:
     """The config fields that decide array shapes and the optimisation trajectory."""
-    values = config.to_dict()
-    fields = {name: values[name] for name in sections}
-    if "train" in fields:
-        fields["train"] = {k: v for k, v in fields["train"].items() if k not in _TRAIN_BOOKKEEPING}
-    return fields
+    return _without_bookkeeping(config.to_dict(), sections)
 
 
 def config_fingerprint(
@@ -91,12 +95,12 @@ def check_compatible(
         return
     saved = meta.get("config")
     if isinstance(saved, Mapping):
-        saved_fields = {k: saved.get(k, {}) for k in sections}
-        if "train" in saved_fields and isinstance(saved_fields["train"], Mapping):
-            saved_fields["train"] = {
-                k: v for k, v in saved_fields["train"].items() if k not in _TRAIN_BOOKKEEPING
-            }
-        diffs = "; ".join(config_differences(saved_fields, fingerprint_fields(config, sections))) or "unknown"
+        saved_fields = _without_bookkeeping(saved, sections)
+        wanted = fingerprint_fields(config, sections)
+        # Equal fields under a different digest: written before a field became bookkeeping.
+        if json.dumps(saved_fields, sort_keys=True) == json.dumps(wanted, sort_keys=True):
+            return
+        diffs = "; ".join(config_differences(saved_fields, wanted)) or "unknown"
     else:
         diffs = "the checkpoint holds no config"
     raise CheckpointError(

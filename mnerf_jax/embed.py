@@ -364,8 +364,7 @@ def check_rgb_images(images: np.ndarray, where: str) -> np.ndarray:
 def _fingerprint_config(config: Config) -> Config:
     """The config with everything that does not change the embedding's trajectory normalised away."""
     wm = dataclasses.replace(config.watermark, checkpoint_every=0, keep_checkpoints=0, id_threshold=0.0)
-    return dataclasses.replace(config, train=TrainConfig(), watermark=wm,
-                               render=dataclasses.replace(config.render, chunk=0))  # fmt: skip
+    return dataclasses.replace(config, train=TrainConfig(), watermark=wm)
 
 
 _SECTIONS = ("data", "model", "render", "watermark")
@@ -746,8 +745,10 @@ class _Loop:
                                             wavelet=self.config.watermark.wavelet)  # fmt: skip
         self.keys = keys_lib.with_fingerprint(self.keys, dec_meta["fingerprint"])
         keys_lib.save_keys(self.out, self.keys)
-        runs.write_json_atomic(self.out / META_FILE, {"steps_done": step, "phase": meta["phase"],
-                                                      "decoder_fingerprint": dec_meta["fingerprint"]})
+        runs.write_json_atomic(
+            self.out / META_FILE,
+            {"steps_done": step, "phase": meta["phase"], "decoder_fingerprint": dec_meta["fingerprint"]},
+        )
 
     def run(self, state: EmbedState, stop_at: int | None) -> EmbedResult:
         cfg = self.config.watermark

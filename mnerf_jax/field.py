@@ -96,9 +96,18 @@ def positional_encoding(x: Array, n_freqs: int) -> Array:
 
     ``x [P, D]`` -> ``[P, 2 D n_freqs]``.
     """
-    freqs = 2.0 ** jnp.arange(n_freqs, dtype=jnp.float32)
-    scaled = (x[..., :, None] * freqs).reshape(*x.shape[:-1], x.shape[-1] * n_freqs)
-    return jnp.concatenate([jnp.sin(scaled), jnp.cos(scaled)], axis=-1)
+    # One sin and one cos per input, the higher octaves by the double-angle formulas: the
+    # transcendentals were ~10 % of an evaluation render on the CPU. The error grows about 2x per
+    # octave (~1e-6 at k = 4 against sin(x 2^k) directly), far below what the MLP can tell apart.
+    sines, cosines = [jnp.sin(x)], [jnp.cos(x)]
+    for _ in range(n_freqs - 1):
+        s, c = sines[-1], cosines[-1]
+        sines.append(2.0 * s * c)
+        cosines.append((c - s) * (c + s))
+    shape = (*x.shape[:-1], x.shape[-1] * n_freqs)
+    return jnp.concatenate(
+        [jnp.stack(sines, -1).reshape(shape), jnp.stack(cosines, -1).reshape(shape)], axis=-1
+    )
 
 
 def mlp_inputs(features: Array, viewdirs: Array, cfg: ModelConfig) -> Array:

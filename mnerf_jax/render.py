@@ -679,7 +679,7 @@ def render_image(
     height: int,
     width: int,
     *,
-    chunk: int = 8192,
+    chunk: int = 4096,
     policy: BudgetPolicy | None = None,
     bg: Array | None = None,
 ) -> dict[str, np.ndarray]:

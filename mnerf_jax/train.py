@@ -513,6 +513,7 @@ class FitResult:
     last_metrics: dict[str, float]
     total_train_seconds: float = 0.0  # including earlier sessions of a resumed run
     compile_seconds: float = 0.0  # spent tracing and compiling train steps (within train_seconds)
+    step_shapes: tuple[tuple, ...] = ()  # (resolution, samples per ray, density, colour budget) compiled
 
     @property
     def rays_per_second(self) -> float:
@@ -617,7 +618,7 @@ class _Trainer:
                 self.rays_done += self.batch
                 self.state = after
                 pending = None
-                if refit_due(pk + 1, self.phase_start):
+                if refit_due(pk + 1, self.phase_start, self.budgets):
                     self.budgets.schedule_refit(pk + 2, self.cap, self.phase_end - (pk + 2))
                 on_step(pk, {name: float(v) for name, v in host.items()})
             if nxt is not None:
@@ -795,6 +796,7 @@ def fit(
             state=trainer.state, fns=fns, steps=int(trainer.state.step), train_seconds=seconds,
             rays=trainer.rays_done, compiles=len(trainer.shapes_seen), redone_steps=trainer.redone,
             last_metrics=last, total_train_seconds=prior + seconds, compile_seconds=trainer.compile_seconds,
+            step_shapes=tuple(sorted(trainer.shapes_seen)),
         )  # fmt: skip
     finally:
         if store is not None:

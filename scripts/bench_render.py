@@ -3,7 +3,14 @@
 1. Compositing, forward+backward: cumulative sum vs ``lax.scan`` (4096 rays x 443 samples).
 2. VM plane sampling, forward and forward+backward: channels-last gather table vs
    ``jax.scipy.ndimage.map_coordinates`` (1 M points x 16 components, 128^2 plane).
-3. ``render_rays`` on a synthetic occupied field (a TensoRF VM-192 field at 128^3 that is empty except
+3. The density feature (sum of a rank-16 x 3 VM grid's component products), forward and
+   forward+backward, at points along random rays: per-mode gathers vs the dense trilinear volume
+   vs the default (gather forward, volume backward; ``grids.sample_vm_sum``), at 128^3 and 300^3
+   with 0.52 M and 1.57 M points.
+4. The colour MLP (TensoRF's MLP_Fea, 150 -> 128 -> 128 -> 3) forward+backward at 1 M points, in
+   float32 and with bfloat16 operands, beside a 4096^3 float32 matrix product (the machine's matmul
+   rate): the floor of a training step whose samples all need colour.
+5. ``render_rays`` on a synthetic occupied field (a TensoRF VM-192 field at 128^3 that is empty except
    a ball): training step (forward+backward of an MSE loss) and evaluation, dense evaluation vs
    compaction (without and with the alpha mask).
 
@@ -17,16 +24,23 @@ import argparse
 import json
 import os
 import platform
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
-import jax
-import jax.numpy as jnp
-import numpy as np
-from jax.scipy.ndimage import map_coordinates
+from mnerf_jax.commands.fit import reexec_with_huge_pages
 
-from mnerf_jax import field, grids, render
-from mnerf_jax.config import ModelConfig
+# glibc huge pages for XLA's buffers, as the mnerf command uses (see mnerf_jax.commands.fit).
+reexec_with_huge_pages([sys.executable, str(Path(__file__).resolve()), *sys.argv[1:]])
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from jax.scipy.ndimage import map_coordinates  # noqa: E402
+
+from mnerf_jax import field, grids, render  # noqa: E402
+from mnerf_jax.config import ModelConfig  # noqa: E402
 
 
 def best_time(fn: Callable[[], object], repeats: int) -> float:
@@ -206,12 +220,69 @@ def bench_render(repeats: int, options: dict, res: int = 128, rays: int = 4096) 
     return out
 
 
+def points_along_rays(key: jax.Array, rays: int, samples: int, res: int) -> jax.Array:
+    """``[rays * samples, 3]`` points at half-voxel spacing along random rays through [-1, 1]^3."""
+    k1, k2 = jax.random.split(key)
+    o = jax.random.uniform(k1, (rays, 3), minval=-1, maxval=1)
+    d = jax.random.normal(k2, (rays, 3))
+    d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+    t = (jnp.arange(samples) - samples / 2) * (1.0 / res)
+    return jnp.clip(o[:, None] + d[:, None] * t[None, :, None], -1.02, 1.02).reshape(-1, 3)
+
+
+def bench_density(repeats: int, options: dict) -> dict[str, float]:
+    """``grids.sample_vm_sum`` by method, grid size and point count."""
+    out: dict[str, float] = {}
+    for res in (128, 300):
+        grid = grids.init_vm(jax.random.PRNGKey(0), (res, res, res), (16, 16, 16), 0.1)
+        for points in (524_288, 1_572_864):
+            xyz = points_along_rays(jax.random.PRNGKey(1), points // 384, 384, res)
+            for method in ("gather", "volume", "auto"):
+                fwd = jax.jit(lambda g, x, m=method: grids.sample_vm_sum(g, x, m), compiler_options=options)
+                loss = lambda g, x, m=method: jnp.sum(jnp.sin(grids.sample_vm_sum(g, x, m)))
+                grad = jax.jit(jax.grad(loss), compiler_options=options)
+                name = f"density_{method}_{res}^3_{points // 1000}k"
+                out[f"{name}_fwd_ms"] = 1e3 * best_time(lambda f=fwd, g=grid, x=xyz: f(g, x), repeats)
+                out[f"{name}_fwdbwd_ms"] = 1e3 * best_time(lambda f=grad, g=grid, x=xyz: f(g, x), repeats)
+    return out
+
+
+def bench_mlp(repeats: int, options: dict, points: int = 1 << 20) -> dict[str, float]:
+    """MLP_Fea forward+backward at ``points`` points (f32, bf16 operands) and a large matmul's GFLOP/s."""
+    keys = jax.random.split(jax.random.PRNGKey(0), 4)
+    x = jax.random.normal(keys[0], (points, 150))
+    shapes = [(150, 128), (128, 128), (128, 3)]
+    weights = [0.1 * jax.random.normal(k, shape) for k, shape in zip(keys[1:], shapes, strict=True)]
+    flops = 2 * points * (150 * 128 + 128 * 128 + 128 * 3)  # forward; backward about twice that
+
+    def mlp(ws: list, h: jax.Array, dtype: jnp.dtype) -> jax.Array:
+        for i, w in enumerate(ws):
+            h = jnp.dot(h.astype(dtype), w.astype(dtype), preferred_element_type=jnp.float32)
+            h = jax.nn.relu(h) if i < 2 else jax.nn.sigmoid(h)
+        return jnp.sum(h)
+
+    out: dict[str, float] = {"mlp_points": float(points)}
+    for name, dtype in (("f32", jnp.float32), ("bf16", jnp.bfloat16)):
+        grad = jax.jit(
+            jax.grad(lambda ws, h, d=dtype: mlp(ws, h, d), argnums=(0, 1)), compiler_options=options
+        )
+        seconds = best_time(lambda g=grad: g(weights, x), repeats)
+        out[f"mlp_{name}_fwdbwd_ms"] = 1e3 * seconds
+        out[f"mlp_{name}_gflops"] = 3 * flops / seconds / 1e9
+    a = jax.random.normal(keys[0], (4096, 4096))
+    matmul = jax.jit(lambda p, q: p @ q, compiler_options=options)
+    out["matmul_4096_f32_gflops"] = 2 * 4096**3 / best_time(lambda: matmul(a, a), repeats) / 1e9
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--res", type=int, default=128, help="grid resolution for the render benchmark")
     parser.add_argument("--rays", type=int, default=4096)
-    parser.add_argument("--only", choices=["compositing", "sampling", "render"], action="append")
+    parser.add_argument(
+        "--only", choices=["compositing", "sampling", "density", "mlp", "render"], action="append"
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON line")
     parser.add_argument(
         "--xla-defaults",
@@ -220,7 +291,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     options = {} if args.xla_defaults else render.xla_compiler_options()
-    parts = args.only or ["compositing", "sampling", "render"]
+    parts = args.only or ["compositing", "sampling", "density", "mlp", "render"]
     results: dict[str, object] = {
         "jax": jax.__version__,
         "python": platform.python_version(),
@@ -229,11 +300,16 @@ def main() -> None:
         "repeats": args.repeats,
         "load_avg_1min": os.getloadavg()[0],
         "compiler_options": json.dumps(options),
+        "glibc_tunables": os.environ.get("GLIBC_TUNABLES", ""),
     }
     if "compositing" in parts:
         results.update(bench_compositing(args.repeats, options))
     if "sampling" in parts:
         results.update(bench_sampling(args.repeats, options))
+    if "density" in parts:
+        results.update(bench_density(args.repeats, options))
+    if "mlp" in parts:
+        results.update(bench_mlp(args.repeats, options))
     if "render" in parts:
         results.update(bench_render(args.repeats, options, args.res, args.rays))
     if args.json:

@@ -8,6 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mnerf_jax import field, grids
 from mnerf_jax.config import ModelConfig
@@ -138,3 +140,13 @@ def test_param_count_matches_tensorf_size():
     mlp_part = 150 * 128 + 128 + 128 * 128 + 128 + 128 * 3 + 3
     assert n == grid_part + 144 * 27 + mlp_part
     assert abs(n / 17.4e6 - 1) < 0.01
+
+
+@settings(max_examples=20, deadline=None)
+@given(x=st.lists(st.floats(-30.0, 30.0, width=32), min_size=1, max_size=8), n_freqs=st.integers(1, 6))
+def test_positional_encoding_double_angle_matches_direct(x, n_freqs):
+    """The double-angle octaves equal sin / cos of x 2^k, within an error that doubles per octave."""
+    xs = np.asarray(x, np.float32)[None, :]
+    got = np.asarray(jax.jit(field.positional_encoding, static_argnums=1)(jnp.asarray(xs), n_freqs))[0]
+    scaled = (xs[0, :, None].astype(np.float64) * 2.0 ** np.arange(n_freqs)).reshape(-1)
+    np.testing.assert_allclose(got, np.concatenate([np.sin(scaled), np.cos(scaled)]), atol=2e-7 * 2**n_freqs)

@@ -87,6 +87,22 @@ def test_budgets_grow_on_overflow_and_refit_two_steps_later():
     assert b.colour_estimate(128) == pytest.approx(100 * 2 * b.headroom)
 
 
+def test_large_budgets_are_refitted_more_often_and_by_smaller_rungs():
+    from mnerf_jax.budgets import LARGE_BUDGET, REFIT_EVERY_LARGE, ladder, refit_due
+
+    small = train.SampleBudgets(density=4096, colour=4096)
+    large = train.SampleBudgets(density=2 * LARGE_BUDGET, colour=2 * LARGE_BUDGET)
+    assert not refit_due(REFIT_EVERY_LARGE, 0, small)
+    assert refit_due(REFIT_EVERY_LARGE, 0, large)
+    # Colour used at 60 %: the small-budget rule (below half) keeps it, the large-budget rule takes the
+    # next rung down.
+    count = int(0.6 * large.colour)
+    large.observe(40, density_count=large.density - 1, colour_count=count, n_samples=64, cap=1 << 24)
+    large.schedule_refit(42, 1 << 24, remaining=100)
+    assert large.for_step(42) == (large.density, ladder(count * large.headroom))
+    assert large.for_step(42)[1] <= 0.75 * large.colour
+
+
 # -- the loop --------------------------------------------------------------------------------------
 
 
