@@ -42,6 +42,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--data", type=Path, default=ROOT.parent / "shared" / "data" / "nerf_synthetic" / "lego"
     )
     parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument(
+        "--schedule-steps",
+        type=int,
+        default=None,
+        help="length of the learning-rate decay (train.n_iters; default --steps). With 30000 the run is the "
+        "first --steps steps of the Blender preset's schedule, whose rates barely decay by then",
+    )
     parser.add_argument("--batch", type=int, default=4096)
     parser.add_argument("--downscale", type=float, default=1.0, help="image side divided by this")
     parser.add_argument("--grid", type=int, default=128, help="grid side (voxels = grid^3)")
@@ -63,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     overrides = [
         f"data.downscale={args.downscale}",
         f"train.batch_size={args.batch}",
-        f"train.n_iters={args.steps}",
+        f"train.n_iters={args.schedule_steps or args.steps}",
         f"train.n_voxel_init={n}",
         f"train.n_voxel_final={n}",
         "train.upsample_steps=",
@@ -88,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
         step_times.append(now - last[0])
         last[0] = now
 
-    result = train.fit(config, scene, None, on_step=on_step)
+    result = train.fit(config, scene, None, on_step=on_step, stop_at=args.steps)
     train_s = result.train_seconds
     rays = result.rays
 
@@ -136,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
         "median_step_s": round(float(np.median(step_times)), 4) if step_times else None,
         "load_seconds": round(load_s, 2),
         "steps": result.steps,
+        "schedule_steps": args.schedule_steps or args.steps,
         "batch": args.batch,
         "image": [w, h],
         "render_rays": hh * ww,
