@@ -179,7 +179,7 @@ def sample_vm(grid: VMGrid, xyz: Array) -> Array:
     return jnp.concatenate(sample_vm_modes(grid, xyz), axis=-1)
 
 
-# The volume path of ``sample_vm_sum`` is taken while the grid has at most this many cells per point.
+# ``sample_vm_sum`` back-propagates through the dense volume up to this many grid cells per point.
 VOLUME_CELLS_PER_POINT = 32
 
 
