@@ -117,7 +117,9 @@ def prepare_output(out: str | Path, config: Config, *, resume: bool, kind: str =
             diffs = "; ".join(config_differences(old, fingerprint_fields(config)))
         except RunError:
             diffs = "its config.json is unreadable"
-        raise RunError(f"--out {out} holds another run ({diffs}); choose another directory")
+        # No differences under another digest: written before a field became bookkeeping.
+        if diffs:
+            raise RunError(f"--out {out} holds another run ({diffs}); choose another directory")
     if not resume:
         raise RunError(f"--out {out} already holds this run; pass --resume to continue it")
     return True

@@ -21,7 +21,8 @@ def _tree(scale: float, size: int = 4):
 def test_fingerprint_ignores_bookkeeping_but_not_the_schedule():
     base = load_config("procedural")
     same = load_config(
-        "procedural", ["train.checkpoint_every=7", "train.log_every=3", "train.keep_checkpoints=5"]
+        "procedural",
+        ["train.checkpoint_every=7", "train.log_every=3", "train.keep_checkpoints=5", "render.chunk=1024"],
     )
     assert config_fingerprint(base) == config_fingerprint(same)
     for override in ("train.n_iters=999", "model.density_ranks=8,8,8", "render.step_ratio=0.25",
@@ -72,3 +73,21 @@ def test_config_differences_lists_changed_fields():
     old = {"train": {"n_iters": 1, "seed": 0}, "model": {"a": 1}}
     new = {"train": {"n_iters": 2, "seed": 0}, "model": {"a": 1}}
     assert checkpoint.config_differences(old, new) == ["train.n_iters: 1 -> 2"]
+
+
+def test_runs_written_under_an_older_digest_still_load(tmp_path):
+    """A checkpoint or run whose stored digest predates a field becoming bookkeeping is accepted when its
+    fields agree; a real difference is still refused."""
+    from mnerf_jax import run
+
+    config = load_config("procedural")
+    meta = {"fingerprint": "0123456789abcdef", "config": config.to_dict()}  # a digest no config gives
+    check_compatible(meta, config, tmp_path)
+    with pytest.raises(CheckpointError, match="train.n_iters"):
+        check_compatible(meta, load_config("procedural", ["train.n_iters=999"]), tmp_path)
+    run.write_run_files(tmp_path / "r", config, data=None)
+    marker = tmp_path / "r" / run.RUN_MARKER
+    marker.write_text(marker.read_text().replace(config_fingerprint(config), "0123456789abcdef"))
+    assert run.prepare_output(tmp_path / "r", config, resume=True)
+    with pytest.raises(run.RunError, match="train.n_iters"):
+        run.prepare_output(tmp_path / "r", load_config("procedural", ["train.n_iters=999"]), resume=True)
