@@ -367,6 +367,16 @@ def _fingerprint_config(config: Config) -> Config:
     return dataclasses.replace(config, train=TrainConfig(), watermark=wm)
 
 
+def _normalised_meta(meta: dict[str, Any]) -> dict[str, Any]:
+    """Checkpoint meta whose config is normalised like ``_fingerprint_config``, so its fields compare
+    equal to the current config's even when its digest was computed under older fingerprint rules."""
+    try:
+        saved = _fingerprint_config(config_lib.from_dict(meta["config"]))
+    except (KeyError, TypeError, config_lib.ConfigError):  # check_compatible reports it
+        return meta
+    return {**meta, "config": saved.to_dict()}
+
+
 _SECTIONS = ("data", "model", "render", "watermark")
 _GEOMETRY_KEYS = ("aabb", "alpha_mask", "mask_aabb", "step_size", "near", "far", "distance_scale")
 
@@ -672,7 +682,7 @@ def embed(
             meta = store.read_meta()
             if meta.get("kind") != WM_KIND:
                 raise EmbedError(f"{out}: its checkpoint holds a {meta.get('kind')!r} model, not a watermark")
-            check_compatible(meta, _fingerprint_config(config), out, _SECTIONS)
+            check_compatible(_normalised_meta(meta), _fingerprint_config(config), out, _SECTIONS)
             _, tree, meta = _restore(store, out)
             state = EmbedState(
                 params=jax.tree.map(jnp.asarray, tree["params"]),
