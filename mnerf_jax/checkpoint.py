@@ -84,6 +84,16 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any], limit: in
     return diffs
 
 
+def fingerprint_differences(
+    saved: Mapping[str, Any], config: Config, sections: tuple[str, ...] = ("data", "model", "render", "train")
+) -> list[str]:
+    """``config_differences`` between a saved config dict and ``config`` over the fingerprinted fields.
+
+    Empty when they agree, even if the saved run's digest was computed under older fingerprint rules.
+    """
+    return config_differences(_without_bookkeeping(saved, sections), fingerprint_fields(config, sections))
+
+
 def check_compatible(
     meta: Mapping[str, Any],
     config: Config,
@@ -95,12 +105,9 @@ def check_compatible(
         return
     saved = meta.get("config")
     if isinstance(saved, Mapping):
-        saved_fields = _without_bookkeeping(saved, sections)
-        wanted = fingerprint_fields(config, sections)
-        # Equal fields under a different digest: written before a field became bookkeeping.
-        if json.dumps(saved_fields, sort_keys=True) == json.dumps(wanted, sort_keys=True):
+        diffs = "; ".join(fingerprint_differences(saved, config, sections))
+        if not diffs:  # equal fields under another digest: written before a field became bookkeeping
             return
-        diffs = "; ".join(config_differences(saved_fields, wanted)) or "unknown"
     else:
         diffs = "the checkpoint holds no config"
     raise CheckpointError(

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from mnerf_jax import __version__
-from mnerf_jax.checkpoint import CheckpointStore, config_differences, config_fingerprint, fingerprint_fields
+from mnerf_jax.checkpoint import CheckpointStore, config_fingerprint, fingerprint_differences
 from mnerf_jax.config import Config, ConfigError, from_dict
 from mnerf_jax.errors import MnerfError
 
@@ -113,8 +113,7 @@ def prepare_output(out: str | Path, config: Config, *, resume: bool, kind: str =
         )
     if marker.get("fingerprint") != config_fingerprint(config):
         try:
-            old = fingerprint_fields(read_run_config(out))
-            diffs = "; ".join(config_differences(old, fingerprint_fields(config)))
+            diffs = "; ".join(fingerprint_differences(read_run_config(out).to_dict(), config))
         except RunError:
             diffs = "its config.json is unreadable"
         # No differences under another digest: written before a field became bookkeeping.
