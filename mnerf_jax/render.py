@@ -422,6 +422,45 @@ def compact(mask: Array, budget: int) -> tuple[Array, Array]:
     return idx[:budget], count[-1]
 
 
+# Colour slots per chunk of ``colour_in_chunks``.
+COLOUR_CHUNK = 1 << 16
+
+
+def colour_in_chunks(
+    fns: FieldFns,
+    params: Params,
+    cond: Any,
+    xyz: Array,
+    viewdirs: Array,
+    count: Array,
+    chunk: int = COLOUR_CHUNK,
+) -> Array:
+    """``fns.colour`` over a compacted buffer ``[B, 3]`` whose first ``count`` rows are real samples.
+
+    The buffer is evaluated in chunks of ``chunk`` rows (``lax.scan``), and a chunk past ``count``
+    holds only padding: ``lax.cond`` skips it, forward and backward. So a step pays for the samples
+    that need colour, rounded up to a chunk, not for its static budget: the colour count falls ~8x
+    over the first few hundred steps of a fit (and is 0 for the first ~20), while a smaller budget
+    costs a compilation. Buffers of at most one chunk, or not a multiple of it, go in one call.
+    """
+    b = xyz.shape[0]
+    if b <= chunk or b % chunk:
+        return fns.colour(params, cond, xyz, viewdirs)
+    n = b // chunk
+
+    def body(carry: None, part: tuple[Array, Array, Array]) -> tuple[None, Array]:
+        x, v, i = part
+        rgb = jax.lax.cond(
+            i * chunk < count,
+            jax.checkpoint(lambda: fns.colour(params, cond, x, v)),
+            lambda: jnp.zeros((chunk, 3), xyz.dtype),
+        )
+        return carry, rgb
+
+    parts = (xyz.reshape(n, chunk, 3), viewdirs.reshape(n, chunk, 3), jnp.arange(n, dtype=jnp.int32))
+    return jax.lax.scan(body, None, parts)[1].reshape(b, 3)
+
+
 # --------------------------------------------------------------------------------------------------
 # render_rays
 # --------------------------------------------------------------------------------------------------
@@ -508,7 +547,7 @@ def render_rays(
     else:
         idx, colour_count = compact(significant, colour_budget)
         xyz_c, ray = points_at(idx)
-        rgb_c = fns.colour(params, cond, xyz_c, grids.take_rows(viewdirs, ray))
+        rgb_c = colour_in_chunks(fns, params, cond, xyz_c, grids.take_rows(viewdirs, ray), colour_count)
         w_c = jnp.where(idx < m, grids.take_rows(weights.reshape(m), jnp.minimum(idx, m - 1)), 0.0)
         ray = jnp.where(idx < m, ray, r)  # padding slots land in a discarded row
         rgb = add_rows(r + 1, ray, w_c[:, None] * rgb_c, sorted_indices=True)[:r]

@@ -57,6 +57,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--render-repeats", type=int, default=3, help="timed renders (the best counts)")
     parser.add_argument("--json", action="store_true", help="print one JSON line")
+    parser.add_argument(
+        "--step-log",
+        type=Path,
+        default=None,
+        help="write one JSON line per step (seconds, sample counts, PSNR)",
+    )
     return parser.parse_args(argv)
 
 
@@ -88,14 +94,21 @@ def main(argv: list[str] | None = None) -> int:
     last = [time.perf_counter()]
 
     psnrs: list[float] = []
+    step_log = args.step_log.open("w") if args.step_log else None
 
     def on_step(step: int, metrics: dict[str, float]) -> None:
         psnrs.append(metrics.get("psnr", float("nan")))
         now = time.perf_counter()
         step_times.append(now - last[0])
         last[0] = now
+        if step_log is not None:
+            row = {"step": step, "seconds": round(step_times[-1], 4)}
+            row.update({k: round(float(v), 4) for k, v in metrics.items()})
+            step_log.write(json.dumps(row) + "\n")
 
     result = train.fit(config, scene, None, on_step=on_step, stop_at=args.steps)
+    if step_log is not None:
+        step_log.close()
     train_s = result.train_seconds
     rays = result.rays
 

@@ -450,3 +450,38 @@ def test_geometry_is_a_pytree_with_static_shape_fields():
     assert rebuilt.n_samples == 33 and rebuilt.white_bg and not rebuilt.ndc
     with pytest.raises(ValueError):
         render.with_alpha_mask(geo, np.ones((1, 4, 4), bool), CUBE)
+
+
+@pytest.mark.parametrize("count", [0, 5, 16, 17, 40, 64])
+def test_colour_in_chunks_skips_only_padding(count):
+    """Chunks past the count are skipped (zeros), the others equal one call, in value and gradient."""
+    fns = render.FieldFns(density=SphereDensity(), colour=SmoothColour())
+    rng = np.random.default_rng(count)
+    xyz = jnp.asarray(rng.uniform(-1, 1, (64, 3)), jnp.float32)
+    vd = jnp.asarray(rng.normal(size=(64, 3)), jnp.float32)
+    cot = jnp.asarray(rng.normal(size=(64, 3)), jnp.float32)
+    params = {
+        "w": jnp.asarray(rng.normal(size=(3, 3)), jnp.float32),
+        "v": jnp.asarray(rng.normal(size=(3, 3)), jnp.float32),
+    }
+    cond = jnp.float32(0.3)
+    live = (np.arange(64) < -(-count // 16) * 16)[:, None]  # the rows of chunks holding a sample
+
+    def loss(p, c, chunked):
+        if chunked:
+            rgb = render.colour_in_chunks(fns, p, c, xyz, vd, jnp.int32(count), chunk=16)
+        else:
+            rgb = jnp.where(live, fns.colour(p, c, xyz, vd), 0.0)
+        return jnp.sum(cot * rgb), rgb
+
+    def value_and_grad(chunked):
+        return jax.value_and_grad(lambda p, c: loss(p, c, chunked), argnums=(0, 1), has_aux=True)(
+            params, cond
+        )
+
+    (_, got), g_got = jax.jit(lambda: value_and_grad(True))()
+    (_, want), g_want = value_and_grad(False)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-6, atol=1e-6)
+    assert not np.any(np.asarray(got)[~live[:, 0]])
+    for a, b in zip(jax.tree.leaves(g_got), jax.tree.leaves(g_want), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-5)
