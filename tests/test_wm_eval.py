@@ -100,8 +100,14 @@ def test_confusion_matrix_and_summary() -> None:
 
 def _fake_eval(num_ids: int = 3, bits: int = 8) -> dict:
     per_id = [
-        {"id": n, "message": "01" * (bits // 2), "bit_accuracy": 0.6 + 0.1 * n,
-         "bit_accuracy_png": 0.55 + 0.1 * n, "identification_accuracy": 1.0, "psnr": 30.0 - n}
+        {
+            "id": n,
+            "message": "01" * (bits // 2),
+            "bit_accuracy": 0.6 + 0.1 * n,
+            "bit_accuracy_png": 0.55 + 0.1 * n,
+            "identification_accuracy": 1.0,
+            "psnr": 30.0 - n,
+        }
         for n in range(num_ids)
     ]
     return {
