@@ -251,8 +251,8 @@ def _vm_sum_fwd(grid: VMGrid, xyz: Array, volume_backward: bool) -> tuple[Array,
 def _vm_sum_bwd(volume_backward: bool, res: tuple[VMGrid, Array], cot: Array) -> tuple[VMGrid, Array]:
     grid, xyz = res
     if volume_backward:
-        res = vm_resolution(grid)
-        d_volume = splat_volume(cot[:, None], xyz, res).reshape(res)
+        shape = vm_resolution(grid)
+        d_volume = splat_volume(cot[:, None], xyz, shape).reshape(shape)
         d_grid = _volume_transpose(grid, d_volume)
     else:
         d_grid = jax.vjp(lambda g: _gathered_sum(g, xyz), grid)[1](cot)[0]
@@ -279,15 +279,16 @@ def sample_vm_sum(grid: VMGrid, xyz: Array, method: str = "auto") -> Array:
       the cells, the gathers' the points).
 
     Measured with ``scripts/bench_render.py --only density`` (2-core CPU, rank 16 x 3, points along
-    random rays, best of 3), forward / forward+backward in ms:
+    random rays, best of 3), forward / forward+backward in ms; "auto" splats by row scatter-adds
+    (``splat_volume``):
 
     ==================  ============  ============  ============
     grid, points        gather        volume        auto
     ==================  ============  ============  ============
-    128^3, 0.52 M       7 / 125       17 / 62       8 / 47
-    128^3, 1.57 M       16 / 408      29 / 161      15 / 160
-    300^3, 0.52 M       11 / 208      42 / 173      11 / 185
-    300^3, 1.57 M       47 / 505      68 / 344      33 / 312
+    128^3, 0.52 M       5 / 142       15 / 73       6 / 31
+    128^3, 1.57 M       19 / 383      37 / 197      28 / 71
+    300^3, 0.52 M       11 / 174      35 / 194      13 / 166
+    300^3, 1.57 M       26 / 486      72 / 346      24 / 200
     ==================  ============  ============  ============
     """
     if method == "auto":
