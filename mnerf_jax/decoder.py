@@ -114,9 +114,14 @@ def init_decoder(key: jax.Array, bits: int, channels: int = 64, depth: int = 8) 
         raise MnerfError(
             f"unsupported message length {bits} bits (supported: {', '.join(map(str, SUPPORTED_BITS))})"
         )
-    module = HiddenDecoder(bits=bits, channels=channels, depth=depth)
-    # One compiled init instead of dispatching each initialiser separately.
-    return dict(jax.jit(module.init)(key, jnp.zeros((1, 8, 8, 3), jnp.float32)))
+    return dict(_compiled_init(bits, channels, depth)(key, jnp.zeros((1, 8, 8, 3), jnp.float32)))
+
+
+@functools.cache
+def _compiled_init(bits: int, channels: int, depth: int) -> Any:
+    """One compiled init per architecture (instead of dispatching each initialiser separately), kept: the
+    compilation takes ~2 s on a CPU and a run's setup or a checkpoint check may init several times."""
+    return jax.jit(HiddenDecoder(bits=bits, channels=channels, depth=depth).init)
 
 
 # Jitted (a whole-network compile instead of op-by-op dispatch); inside other jitted code they simply inline.

@@ -280,12 +280,12 @@ def train_decoder(
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoint.msgpack"
     log = log or (lambda line: None)
+    if ckpt.is_file() and not resume:
+        raise MnerfError(f"{ckpt} exists; pass --resume to continue that run or choose another --out")
     state, (tx_joint, tx_ft, tx_inf) = init_state(cfg)
     if resume and ckpt.is_file():
         state = load_checkpoint(ckpt, state, cfg)
         log(f"resumed from {ckpt} at step {state['step']}")
-    elif ckpt.is_file() and not resume:
-        raise MnerfError(f"{ckpt} exists; pass --resume to continue that run or choose another --out")
 
     source = training_source(cfg)
     eval_images = heldout_images(cfg.eval_images, cfg.size)

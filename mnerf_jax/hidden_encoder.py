@@ -60,9 +60,14 @@ class LL2Encoder(nn.Module):
 
 
 def init_encoder(key: jax.Array, bits: int, channels: int = 32, depth: int = 3) -> dict[str, Any]:
+    return dict(_compiled_init(bits, channels, depth)(key))
+
+
+@functools.cache
+def _compiled_init(bits: int, channels: int, depth: int) -> Any:
+    """One compiled init per architecture, kept (a compilation takes ~2 s on a CPU)."""
     module = LL2Encoder(channels=channels, depth=depth)
-    init = jax.jit(lambda k: module.init(k, jnp.zeros((1, 8, 8, 3)), jnp.zeros((1, bits)), train=False))
-    return dict(init(key))
+    return jax.jit(lambda k: module.init(k, jnp.zeros((1, 8, 8, 3)), jnp.zeros((1, bits)), train=False))
 
 
 def encode(

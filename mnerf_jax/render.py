@@ -611,7 +611,9 @@ class BudgetPolicy:
 
     A grown budget is ``ladder_budget(count * headroom)`` (one compilation per distinct size). When
     the largest count of the last ``patience`` calls (the first 5 calls for fresh budgets) times
-    ``headroom`` is below ``shrink_below`` of a budget, it shrinks to fit. Budgets never exceed
+    ``headroom`` is below ``shrink_below`` of a budget, it shrinks to fit, unless that frees fewer than
+    ``min_shrink`` slots (a compilation costs seconds; a few thousand slots save microseconds a call, so
+    small renders keep their first budgets). Budgets never exceed
     ``n_rays * n_samples``, which cannot overflow: a site starts there for density (and at
     ``colour_fraction`` of it for colour), or, when only the sample count changed (upsampling), at its
     previous budgets scaled by the ratio of sample counts.
@@ -625,8 +627,10 @@ class BudgetPolicy:
         steps_per_octave: int = 4,
         minimum: int = 1024,
         colour_fraction: float = 0.125,
+        min_shrink: int = 1 << 15,
     ) -> None:
         self.headroom = headroom
+        self.min_shrink = min_shrink
         self.patience = patience
         self.shrink_below = shrink_below
         self.steps_per_octave = steps_per_octave
@@ -674,9 +678,10 @@ class BudgetPolicy:
         state.calls += 1
         if state.calls >= (min(5, self.patience) if state.fresh else self.patience):
             for name in ("density", "colour"):
-                seen = getattr(state, f"seen_{name}") * self.headroom
-                if seen < self.shrink_below * getattr(state, name):
-                    setattr(state, name, self._ladder(seen, cap))
+                seen, current = getattr(state, f"seen_{name}") * self.headroom, getattr(state, name)
+                fitted = self._ladder(seen, cap)
+                if seen < self.shrink_below * current and current - fitted >= self.min_shrink:
+                    setattr(state, name, fitted)
             state.seen_density = state.seen_colour = state.calls = 0
             state.fresh = False
         return False

@@ -322,7 +322,7 @@ def test_budget_policy_never_drops_samples():
     rays_o, rays_d = camera_rays(64, spread=2.0)  # many rays cross little of the box
     dense = _render(SPHERE, params, geo, rays_o, rays_d, None, None)
     # The first colour budget (8) is too small: the first call overflows and is re-run.
-    policy = render.BudgetPolicy(minimum=8, colour_fraction=0.0, patience=2)
+    policy = render.BudgetPolicy(minimum=8, colour_fraction=0.0, patience=2, min_shrink=0)
     for _ in range(4):
         out = render.render_rays_exact(
             SPHERE, params, None, rays_o, rays_d, geo, None, train=False, policy=policy, site="t"
@@ -336,7 +336,7 @@ def test_budget_policy_never_drops_samples():
 
 
 def test_budget_policy_grows_shrinks_and_rescales():
-    policy = render.BudgetPolicy(minimum=8, patience=3, colour_fraction=0.1)
+    policy = render.BudgetPolicy(minimum=8, patience=3, colour_fraction=0.1, min_shrink=0)
     ladder = lambda x: render.ladder_budget(x, 4, 8)
     assert policy.budgets("s", 10, 100) == (1000, ladder(100))
     counts = {"density_count": 300, "colour_count": 200}
@@ -349,6 +349,21 @@ def test_budget_policy_grows_shrinks_and_rescales():
     # Twice the samples per ray (after upsampling): budgets scale instead of restarting dense.
     assert policy.budgets("s", 10, 200) == (ladder(2 * ladder(360)), ladder(2 * ladder(240)))
     assert policy.budgets("other", 10, 100)[0] == 1000
+
+
+def test_budget_policy_keeps_budgets_when_a_shrink_frees_little():
+    policy = render.BudgetPolicy(minimum=8, patience=2, colour_fraction=1.0, min_shrink=500)
+    counts = {"density_count": 300, "colour_count": 200}
+    assert policy.budgets("s", 10, 100) == (1000, 1000)  # colour starts as large as density: no overflow
+    for _ in range(2):
+        assert not policy.update("s", counts, 10, 100)
+    # Density 1000 -> 384 frees 616 slots: worth a compilation; colour 1000 -> 240 as well.
+    assert policy.budgets("s", 10, 100) == (render.ladder_budget(360, 4, 8), render.ladder_budget(240, 4, 8))
+    small = render.BudgetPolicy(minimum=8, patience=2, colour_fraction=1.0, min_shrink=800)
+    small.budgets("s", 10, 100)
+    for _ in range(2):
+        assert not small.update("s", counts, 10, 100)
+    assert small.budgets("s", 10, 100) == (1000, 1000)  # neither frees 800 slots
 
 
 def test_ladder_budget():
