@@ -117,6 +117,45 @@ def init_decoder(key: jax.Array, bits: int, channels: int = 64, depth: int = 8) 
     return dict(_compiled_init(bits, channels, depth)(key, jnp.zeros((1, 8, 8, 3), jnp.float32)))
 
 
+
+DECODER_INITS = ("random", "filterbank")
+
+
+def filterbank_init(variables: Mapping[str, Any]) -> Variables:
+    """``variables`` with the first block set to a fixed local filter bank, the middle ones near identity.
+
+    Block 0 (Conv 3×3, 3 → C): every 3×3 DCT-II basis pattern (the 8 oscillating ones first, then the
+    constant one) on each opponent colour channel (luminance R+G+B, red−green, yellow−blue), each with both
+    signs (so the GELU after it passes both half-waves), 54 channels; the remaining channels keep their random
+    init. Blocks 1 … depth−1 (C → C): the identity plus 0.1 × their random init, so the rectified band
+    responses reach the pool from the first step. The last block, the linear layers and BatchNorm are left
+    as initialised. A decoder learns against its own gradient watermark markedly faster from this start
+    (docs/decoders.md has the A/B); the architecture and the file format do not change.
+    """
+    params = jax.tree.map(lambda a: np.array(a, np.float32), dict(variables["params"]))
+    _, channels, depth = architecture(variables)
+    colour = np.array([[1, 1, 1], [1, -1, 0], [1, 1, -2]], np.float64)
+    colour /= np.linalg.norm(colour, axis=1, keepdims=True)
+    n = np.arange(3)
+    dct = np.stack([np.cos(np.pi * (2 * n + 1) * k / 6) for k in range(3)])
+    patterns = [np.outer(dct[u], dct[v]) for u in range(3) for v in range(3) if (u, v) != (0, 0)]
+    patterns.append(np.outer(dct[0], dct[0]))  # the constant pattern last
+    kernel = params["block_0"]["conv"]["kernel"]  # [3, 3, 3, C] (HWIO)
+    filled = 0
+    for c in range(3):
+        for pattern in patterns:
+            for sign in (1.0, -1.0):
+                if filled < channels:
+                    unit = pattern / np.linalg.norm(pattern)
+                    kernel[:, :, :, filled] = sign * unit[:, :, None] * colour[c][None, None, :]
+                    filled += 1
+    params["block_0"]["conv"]["bias"][:filled] = 0.0
+    for i in range(1, depth):
+        k = params[f"block_{i}"]["conv"]["kernel"]
+        k *= 0.1
+        k[1, 1] += np.eye(k.shape[2], k.shape[3], dtype=np.float32)
+    return {"params": jax.tree.map(jnp.asarray, params), "batch_stats": variables["batch_stats"]}
+
 @functools.cache
 def _compiled_init(bits: int, channels: int, depth: int) -> Any:
     """One compiled init per architecture (instead of dispatching each initialiser separately), kept: the

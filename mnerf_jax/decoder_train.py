@@ -2,6 +2,8 @@
 
 Recipe (CPU-sized; every step is one jitted function over a small batch of crops):
 
+0. **Decoder start** (``decoder_init``): ``filterbank`` (``decoder.filterbank_init``: signed 3×3 DCT
+   patterns on opponent colours in the first block, the middle blocks near identity) or ``random``.
 1. **Informed stage** (``informed_steps``). The decoder learns against its own gradient watermark
    (``informed.informed_embed``): the residual is the message gradient through the decoder, scaled to a PSNR
    rising from ``informed_start_psnr`` to ``target_psnr``; the decoder reads the encoded image (through the
@@ -63,6 +65,8 @@ from mnerf_jax.hidden_encoder import encode_batch, init_encoder
 ARRAY_KEYS = ("encoder", "decoder", "opt", "opt_ft", "opt_inf")
 MAX_SKIPPED = 20  # consecutive steps with non-finite gradients before a run is declared diverged
 # Config fields that only change the final evaluation: a finished run can be re-evaluated with --resume.
+# Trajectory fields added after checkpoints were first written, with the value a checkpoint without them used.
+ADDED_FIELDS = {"decoder_init": "random"}
 EVAL_FIELDS = ("eval_images", "eval_sizes", "eval_augment_draws", "eval_informed_iterations", "check_images")
 
 
@@ -105,6 +109,7 @@ class DecoderTrainConfig:
     eval_informed_iterations: tuple[int, ...] = (1, 10)  # informed embeddings evaluated (iterations each)
     check_images: int = 8  # encoded held-out images stored (uint8) beside the decoder
     wavelet: str = "bior4.4"
+    decoder_init: str = "filterbank"  # filterbank (decoder.filterbank_init) | random
     images_dir: str = ""  # extra training images (every image file under it)
 
     def to_dict(self) -> dict[str, Any]:
@@ -169,6 +174,8 @@ def init_state(cfg: DecoderTrainConfig) -> tuple[dict[str, Any], tuple]:
     k_enc, k_dec = jax.random.split(jax.random.PRNGKey(cfg.seed))
     encoder = init_encoder(k_enc, cfg.bits, cfg.encoder_channels, cfg.encoder_depth)
     decoder = dec.init_decoder(k_dec, cfg.bits)
+    if cfg.decoder_init == "filterbank":
+        decoder = dec.filterbank_init(decoder)
     tx_joint, tx_ft, tx_inf = make_optimizers(cfg)
     state = {
         "step": 0,
@@ -205,7 +212,7 @@ def load_checkpoint(path: Path, template: dict[str, Any], cfg: DecoderTrainConfi
         raise MnerfError(
             f"checkpoint {path} is unreadable ({type(err).__name__}); delete it to start over"
         ) from None
-    saved = json.loads(payload["config"])
+    saved = {**ADDED_FIELDS, **json.loads(payload["config"])}
     current = json.loads(json.dumps(cfg.trajectory()))  # tuples read back as lists
     diffs = [f"{k}: {saved.get(k)} -> {current[k]}" for k in sorted(current) if saved.get(k) != current[k]]
     if diffs:
@@ -274,6 +281,9 @@ def train_decoder(
 
     if cfg.bits not in dec.SUPPORTED_BITS:
         raise MnerfError(f"--bits must be one of {', '.join(map(str, dec.SUPPORTED_BITS))}, got {cfg.bits}")
+    if cfg.decoder_init not in dec.DECODER_INITS:
+        choices = ", ".join(dec.DECODER_INITS)
+        raise MnerfError(f"--decoder-init must be one of {choices}, got {cfg.decoder_init!r}")
     if cfg.size % 4 or cfg.size < 16:
         raise MnerfError(f"--size must be a multiple of 4 and at least 16, got {cfg.size}")
     out = Path(out_dir)

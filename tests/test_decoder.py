@@ -131,6 +131,33 @@ def test_fresh_decoder_has_unit_logits_and_a_moderate_whitening_gain() -> None:
     assert float(np.abs(fresh.variables["params"]["whiten"]["kernel"]).max()) < 500.0
 
 
+def test_filterbank_init_sets_the_first_block_to_signed_dct_patterns_and_the_middle_to_identity() -> None:
+    variables = dec.init_decoder(jax.random.PRNGKey(3), 16)
+    bank = dec.filterbank_init(variables)
+    k0 = np.asarray(bank["params"]["block_0"]["conv"]["kernel"]).reshape(27, 64)
+    filters = k0[:, :54]
+    # Unit filters in ± pairs; the 27 distinct ones (9 patterns × 3 opponent colours) are orthonormal.
+    np.testing.assert_allclose(np.linalg.norm(filters, axis=0), 1.0, atol=1e-6)
+    np.testing.assert_allclose(filters[:, 0::2], -filters[:, 1::2], atol=0)
+    np.testing.assert_allclose(filters[:, 0::2].T @ filters[:, 0::2], np.eye(27), atol=1e-6)
+    np.testing.assert_array_equal(
+        k0[:, 54:], np.asarray(variables["params"]["block_0"]["conv"]["kernel"]).reshape(27, 64)[:, 54:]
+    )
+    k1 = np.asarray(bank["params"]["block_1"]["conv"]["kernel"])
+    r1 = np.asarray(variables["params"]["block_1"]["conv"]["kernel"])
+    identity = np.zeros_like(r1)
+    identity[1, 1] = np.eye(64)
+    np.testing.assert_allclose(k1, 0.1 * r1 + identity, atol=1e-6)
+    for name in ("block_8", "linear", "whiten"):  # left as initialised
+        for a, b in zip(
+            jax.tree.leaves(bank["params"][name]), jax.tree.leaves(variables["params"][name]), strict=True
+        ):
+            np.testing.assert_array_equal(a, b)
+    assert dec.architecture(bank) == dec.architecture(variables)
+    logits = dec.decode_logits(bank, jnp.full((2, 32, 32, 3), 0.5))
+    assert logits.shape == (2, 16) and bool(jnp.all(jnp.isfinite(logits)))
+
+
 def test_save_load_round_trip(tmp_path: Path, small_decoder: dict) -> None:
     path = tmp_path / "d.npz"
     meta = dec.save_decoder(path, small_decoder, {"training": {"note": "unit test"}}, wavelet="haar")
@@ -338,3 +365,28 @@ def test_encoder_respects_psnr() -> None:
     assert float(jnp.min(-10 * jnp.log10(mse))) >= 35.5 - 1e-3
     assert decoder_train.psnr_schedule(decoder_train.DecoderTrainConfig(steps=100), 0) == 20.0
     assert decoder_train.psnr_schedule(decoder_train.DecoderTrainConfig(steps=100), 99) == 35.5
+
+
+def test_unknown_decoder_init_is_refused_before_anything_is_written(tmp_path: Path) -> None:
+    cfg = decoder_train.DecoderTrainConfig(bits=8, decoder_init="gabor")
+    with pytest.raises(MnerfError, match="--decoder-init must be one of random, filterbank"):
+        decoder_train.train_decoder(cfg, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run" / "checkpoint.msgpack").exists()
+
+
+def test_checkpoint_from_before_decoder_init_existed_reads_as_random(tmp_path: Path) -> None:
+    import flax.serialization
+
+    cfg = decoder_train.DecoderTrainConfig(bits=8, decoder_init="random")
+    state, _ = decoder_train.init_state(cfg)
+    path = tmp_path / "c.msgpack"
+    decoder_train.save_checkpoint(path, state, cfg)
+    payload = flax.serialization.msgpack_restore(path.read_bytes())
+    config = json.loads(payload["config"])
+    del config["decoder_init"]  # as a checkpoint written before the field existed
+    payload["config"] = json.dumps(config)
+    path.write_bytes(flax.serialization.msgpack_serialize(payload))
+    assert decoder_train.load_checkpoint(path, state, cfg)["step"] == 0
+    other = decoder_train.DecoderTrainConfig(bits=8, decoder_init="filterbank")
+    with pytest.raises(MnerfError, match="decoder_init: random -> filterbank"):
+        decoder_train.load_checkpoint(path, state, other)

@@ -38,6 +38,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="informed stage: encode crops this much larger and read a random window of each, so only "
         f"shift-robust watermarks pay ({d.informed_margin}: whole crops)",
     )
+    parser.add_argument(
+        "--decoder-init",
+        choices=("filterbank", "random"),
+        default=d.decoder_init,
+        help="decoder start: a fixed local filter bank in the first block with the middle blocks near "
+        f"identity, or random ({d.decoder_init})",
+    )
     parser.add_argument("--steps", type=int, default=d.steps, help=f"joint encoder+decoder steps ({d.steps})")
     parser.add_argument(
         "--finetune-steps",
@@ -72,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
         bits=args.bits,
         informed_steps=args.informed_steps,
         informed_margin=args.informed_margin,
+        decoder_init=args.decoder_init,
         steps=args.steps,
         finetune_steps=args.finetune_steps,
         size=args.size,
