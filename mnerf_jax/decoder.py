@@ -117,7 +117,6 @@ def init_decoder(key: jax.Array, bits: int, channels: int = 64, depth: int = 8) 
     return dict(_compiled_init(bits, channels, depth)(key, jnp.zeros((1, 8, 8, 3), jnp.float32)))
 
 
-
 DECODER_INITS = ("random", "filterbank")
 
 
@@ -144,9 +143,9 @@ def filterbank_init(variables: Mapping[str, Any]) -> Variables:
     filled = 0
     for c in range(3):
         for pattern in patterns:
+            unit = pattern / np.linalg.norm(pattern)
             for sign in (1.0, -1.0):
                 if filled < channels:
-                    unit = pattern / np.linalg.norm(pattern)
                     kernel[:, :, :, filled] = sign * unit[:, :, None] * colour[c][None, None, :]
                     filled += 1
     params["block_0"]["conv"]["bias"][:filled] = 0.0
@@ -155,6 +154,7 @@ def filterbank_init(variables: Mapping[str, Any]) -> Variables:
         k *= 0.1
         k[1, 1] += np.eye(k.shape[2], k.shape[3], dtype=np.float32)
     return {"params": jax.tree.map(jnp.asarray, params), "batch_stats": variables["batch_stats"]}
+
 
 @functools.cache
 def _compiled_init(bits: int, channels: int, depth: int) -> Any:

@@ -64,9 +64,9 @@ from mnerf_jax.hidden_encoder import encode_batch, init_encoder
 # The parts of the training state that are arrays (and go through the jitted steps); the rest is bookkeeping.
 ARRAY_KEYS = ("encoder", "decoder", "opt", "opt_ft", "opt_inf")
 MAX_SKIPPED = 20  # consecutive steps with non-finite gradients before a run is declared diverged
-# Config fields that only change the final evaluation: a finished run can be re-evaluated with --resume.
 # Trajectory fields added after checkpoints were first written, with the value a checkpoint without them used.
 ADDED_FIELDS = {"decoder_init": "random"}
+# Config fields that only change the final evaluation: a finished run can be re-evaluated with --resume.
 EVAL_FIELDS = ("eval_images", "eval_sizes", "eval_augment_draws", "eval_informed_iterations", "check_images")
 
 

@@ -612,8 +612,8 @@ class BudgetPolicy:
     A grown budget is ``ladder_budget(count * headroom)`` (one compilation per distinct size). When
     the largest count of the last ``patience`` calls (the first 5 calls for fresh budgets) times
     ``headroom`` is below ``shrink_below`` of a budget, it shrinks to fit, unless that frees fewer than
-    ``min_shrink`` slots (a compilation costs seconds; a few thousand slots save microseconds a call, so
-    small renders keep their first budgets). Budgets never exceed
+    ``min_shrink`` slots (a compilation costs seconds, a few thousand slots save little a call, so small
+    renders keep their first budgets). Budgets never exceed
     ``n_rays * n_samples``, which cannot overflow: a site starts there for density (and at
     ``colour_fraction`` of it for colour), or, when only the sample count changed (upsampling), at its
     previous budgets scaled by the ratio of sample counts.
