@@ -11,7 +11,7 @@ for bits in 16 48; do
   run="$out/l$bits"
   resume=()
   if [[ -f "$run/checkpoint.msgpack" ]]; then resume=(--resume); fi
-  mnerf train-decoder --bits "$bits" --out "$run" --informed-steps 4000 --steps 0 --finetune-steps 1500 "${resume[@]}" "$@"
+  mnerf train-decoder --bits "$bits" --out "$run" --informed-steps 4000 --steps 0 --finetune-steps 5000 "${resume[@]}" "$@"
   cp "$run/decoder.npz" "$assets/hidden_l$bits.npz"
   cp "$run/check.npz" "$assets/hidden_l${bits}_check.npz"
 done
