@@ -5,14 +5,21 @@ The decoder reads the level-2 LL2 sub-band of an image (``dwt.ll2``, un-normalis
     LL2 [B, h, w, 3] ─► 9 × (Conv3×3 pad 1 → BatchNorm(eps 1e-3) → GELU exact), channels 3→64, 7×64→64, 64→L
                     ─► global average pool [B, L] ─► Linear(L, L) ─► whitening Linear(L, L) ─► logits [B, L]
 
+The pool can skip a margin of positions at each side (``with_pool_margin``; the receptive-field radius, 9,
+makes the read exactly shift-invariant): with zero padding, a decoder pooled over every position learns to
+read patterns tied to the image frame (docs/decoders.md measures this), which a 3D watermark cannot carry
+into every view. The margin travels with the variables as ``{"pooling": {"margin": int32}}`` and in the
+file's metadata; decoders without it (converted stable-signature / WateRF ones included) pool everywhere.
+
 A bit is 1 where its logit is > 0. The whitening layer is the identity until :func:`fit_whitening` sets it to
 ``W = diag(e^-1/2)·Vᵀ``, ``b = −W·mean`` from the covariance of the raw outputs over a set of images, which
 makes the output covariance the identity over those images.
 
-Variables are a plain pytree ``{"params": ..., "batch_stats": ...}``; the architecture (bits, channels, depth)
-is read back from the array shapes, so no module object needs to travel with them. Files are ``.npz`` archives
-(read with ``allow_pickle=False``) holding one array per leaf plus a JSON metadata entry: bits, wavelet,
-training information and a fingerprint (sha256 of the weight bytes) that :func:`load_decoder` verifies.
+Variables are a plain pytree ``{"params": ..., "batch_stats": ...}`` (plus ``"pooling"`` when set); the
+architecture (bits, channels, depth) is read back from the array shapes, so no module object needs to travel
+with them. Files are ``.npz`` archives (read with ``allow_pickle=False``) holding one array per leaf plus a
+JSON metadata entry: bits, wavelet, pooling margin, training information and a fingerprint (sha256 of the
+weight bytes) that :func:`load_decoder` verifies.
 """
 
 from __future__ import annotations
@@ -85,13 +92,60 @@ class HiddenDecoder(nn.Module):
         for i in range(self.depth):
             x = ConvBNGELU(self.channels, name=f"block_{i}")(x, train)
         x = ConvBNGELU(self.bits, name=f"block_{self.depth}")(x, train)
-        x = jnp.mean(x, axis=(-3, -2))
+        if self.has_variable("pooling", "margin"):
+            x = interior_mean(x, self.get_variable("pooling", "margin"))
+        else:
+            x = jnp.mean(x, axis=(-3, -2))
         x = nn.Dense(self.bits, name="linear")(x)
         # The whitening layer is created (as the identity) even when skipped so that the variables always
         # have the same structure.
         whitening = nn.Dense(self.bits, kernel_init=_identity_init, name="whiten")
         y = whitening(x)
         return y if whiten else x
+
+
+def interior_mean(features: jax.Array, margin: jax.Array | int) -> jax.Array:
+    """Mean of ``features [..., h, w, C]`` over positions at least ``margin`` from every side → ``[..., C]``.
+
+    ``margin`` may be traced (it travels with the variables). Where ``h`` or ``w`` is not larger than
+    ``2·margin`` there is no interior and the mean is over every position.
+    """
+    h, w = features.shape[-3], features.shape[-2]
+    margin = jnp.asarray(margin, jnp.int32)
+    rows, cols = jnp.arange(h), jnp.arange(w)
+    inside_rows = (rows >= margin) & (rows < h - margin)
+    inside = inside_rows[:, None] & ((cols >= margin) & (cols < w - margin))[None]
+    weights = jnp.where(jnp.any(inside), inside, True).astype(features.dtype)[:, :, None]
+    return jnp.sum(features * weights, axis=(-3, -2)) / jnp.sum(weights)
+
+
+def receptive_radius(variables: Mapping[str, Any]) -> int:
+    """Positions of the last feature map that see zero padding: one per 3×3 convolution (9 for HiDDeN's)."""
+    return architecture(variables)[2] + 1
+
+
+def pool_margin(variables: Mapping[str, Any]) -> int:
+    """The pooling margin of ``variables`` (0: the pool covers every position)."""
+    pooling = variables.get("pooling")
+    return int(np.asarray(pooling["margin"])) if pooling else 0
+
+
+def with_pool_margin(variables: Mapping[str, Any], margin: int) -> Variables:
+    """``variables`` whose pool skips ``margin`` positions at each side (0 removes the setting)."""
+    if margin < 0:
+        raise MnerfError(f"the pooling margin must be >= 0, got {margin}")
+    out = {k: v for k, v in variables.items() if k != "pooling"}
+    if margin:
+        out["pooling"] = {"margin": jnp.asarray(margin, jnp.int32)}
+    return out
+
+
+def _with_weights(variables: Mapping[str, Any], params: Any, batch_stats: Any) -> Variables:
+    """``variables`` with new weights, keeping the pooling setting (and dropping anything else)."""
+    out = {"params": params, "batch_stats": batch_stats}
+    if "pooling" in variables:
+        out["pooling"] = variables["pooling"]
+    return out
 
 
 def architecture(variables: Mapping[str, Any]) -> tuple[int, int, int]:
@@ -153,7 +207,7 @@ def filterbank_init(variables: Mapping[str, Any]) -> Variables:
         k = params[f"block_{i}"]["conv"]["kernel"]
         k *= 0.1
         k[1, 1] += np.eye(k.shape[2], k.shape[3], dtype=np.float32)
-    return {"params": jax.tree.map(jnp.asarray, params), "batch_stats": variables["batch_stats"]}
+    return _with_weights(variables, jax.tree.map(jnp.asarray, params), variables["batch_stats"])
 
 
 @functools.cache
@@ -167,14 +221,14 @@ def _compiled_init(bits: int, channels: int, depth: int) -> Any:
 @functools.partial(jax.jit, static_argnames=("whiten",))
 def apply_ll2(variables: Mapping[str, Any], ll2: jax.Array, whiten: bool = True) -> jax.Array:
     """Eval-mode logits (BatchNorm running statistics) of LL2 sub-bands ``[B, h, w, 3]`` → ``[B, bits]``."""
-    variables = {"params": variables["params"], "batch_stats": variables["batch_stats"]}
+    variables = _with_weights(variables, variables["params"], variables["batch_stats"])
     return module_for(variables).apply(variables, ll2, train=False, whiten=whiten)
 
 
 @jax.jit
 def apply_ll2_train(variables: Mapping[str, Any], ll2: jax.Array) -> tuple[jax.Array, Any]:
     """Train-mode logits ``[B, bits]`` (batch statistics) and the updated ``batch_stats``."""
-    variables = {"params": variables["params"], "batch_stats": variables["batch_stats"]}
+    variables = _with_weights(variables, variables["params"], variables["batch_stats"])
     logits, updates = module_for(variables).apply(variables, ll2, train=True, mutable=["batch_stats"])
     return logits, updates["batch_stats"]
 
@@ -214,7 +268,7 @@ def set_whitening(variables: Mapping[str, Any], w: np.ndarray, b: np.ndarray) ->
     params = dict(variables["params"])
     dtype = params["whiten"]["kernel"].dtype
     params["whiten"] = {"kernel": jnp.asarray(np.asarray(w).T, dtype), "bias": jnp.asarray(b, dtype)}
-    return {"params": params, "batch_stats": variables["batch_stats"]}
+    return _with_weights(variables, params, variables["batch_stats"])
 
 
 def calibrate_batch_norm(variables: Mapping[str, Any], ll2: jax.Array) -> Variables:
@@ -268,8 +322,11 @@ def _unflatten(flat: Mapping[str, np.ndarray]) -> Variables:
 
 
 def fingerprint(variables: Mapping[str, Any]) -> str:
-    """sha256 over the leaves' names, dtypes, shapes and little-endian bytes, in sorted order."""
+    """sha256 over the leaves' names, dtypes, shapes and little-endian bytes, in sorted order (and the pooling
+    margin when there is one, so fingerprints of decoders without one are unchanged)."""
     digest = hashlib.sha256()
+    if pool_margin(variables):
+        digest.update(f"pool_margin|{pool_margin(variables)}\n".encode())
     for name, value in _flatten(
         {"params": variables["params"], "batch_stats": variables["batch_stats"]}
     ).items():
@@ -305,6 +362,7 @@ def save_decoder(
     flat = _flatten({"params": variables["params"], "batch_stats": variables["batch_stats"]})
     flat = {k: np.asarray(v, np.float32) for k, v in flat.items()}
     meta = dict(metadata or {})
+    margin = pool_margin(variables)
     meta.update(
         format=FORMAT,
         version=FORMAT_VERSION,
@@ -312,7 +370,8 @@ def save_decoder(
         channels=channels,
         depth=depth,
         wavelet=wavelet,
-        fingerprint=fingerprint(_unflatten(flat)),
+        pool_margin=margin,
+        fingerprint=fingerprint(with_pool_margin(_unflatten(flat), margin)),
     )
     payload = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
     path = Path(path)
@@ -366,6 +425,7 @@ def load_decoder(path: str | Path, expect_bits: int | None = None) -> LoadedDeco
     try:
         bits, channels, depth = int(meta["bits"]), int(meta["channels"]), int(meta["depth"])
         wavelet = str(meta["wavelet"])
+        margin = int(meta.get("pool_margin", 0))  # files written before the setting existed pool everywhere
     except (KeyError, TypeError, ValueError) as err:
         raise MnerfError(f"decoder file {path} has incomplete metadata ({err})") from None
     if expect_bits is not None and bits != expect_bits:
@@ -383,7 +443,9 @@ def load_decoder(path: str | Path, expect_bits: int | None = None) -> LoadedDeco
     for name, shape in expected.items():
         if arrays[name].shape != shape:
             raise MnerfError(f"decoder file {path}: {name} has shape {arrays[name].shape}, expected {shape}")
-    variables = _unflatten({k: v.astype(np.float32) for k, v in arrays.items()})
+    if margin < 0:
+        raise MnerfError(f"decoder file {path} has a negative pooling margin ({margin})")
+    variables = with_pool_margin(_unflatten({k: v.astype(np.float32) for k, v in arrays.items()}), margin)
     if fingerprint(variables) != meta.get("fingerprint"):
         raise MnerfError(f"decoder file {path} is corrupt: its weights do not match the recorded fingerprint")
     variables = jax.tree.map(jnp.asarray, variables)

@@ -77,7 +77,7 @@ def _update_part(
     params = state[part]["params"]
     updates, opt = tx.update(grads, state[opt_key], params)
     new = dict(state)
-    new[part] = {"params": optax.apply_updates(params, updates), "batch_stats": stats}
+    new[part] = {**state[part], "params": optax.apply_updates(params, updates), "batch_stats": stats}
     new[opt_key] = opt
     return _unless_finite(grads, new, state)
 
@@ -92,7 +92,7 @@ def make_joint_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation, a
         k_crop, k_aug = jax.random.split(key)
         seen = random_windows(k_crop, encoded, cfg.size)
         seen = augment_fn(k_aug, seen) if augment_fn is not None else seen
-        dec_vars = {"params": params["decoder"], "batch_stats": state["decoder"]["batch_stats"]}
+        dec_vars = {**state["decoder"], "params": params["decoder"]}
         logits, dec_stats = dec.apply_ll2_train(dec_vars, dwt.ll2(seen, cfg.wavelet))
         loss = _message_loss(logits, bits, cfg.temperature)
         aux = {
@@ -110,7 +110,7 @@ def make_joint_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation, a
         params = optax.apply_updates(params, updates)
         new = dict(state)
         new["encoder"] = {"params": params["encoder"], "batch_stats": aux["enc_stats"]}
-        new["decoder"] = {"params": params["decoder"], "batch_stats": aux["dec_stats"]}
+        new["decoder"] = {**state["decoder"], "params": params["decoder"], "batch_stats": aux["dec_stats"]}
         new["opt"] = opt
         return _unless_finite(grads, new, state), _metrics(loss, aux, grads)
 
@@ -160,7 +160,7 @@ def make_informed_step(
     def loss_fn(params, state, images, bits, key, psnr):
         stats = state["decoder"]["batch_stats"]
         read = lambda x: dec.apply_ll2_train(
-            {"params": params, "batch_stats": stats}, dwt.ll2(x, cfg.wavelet)
+            {**state["decoder"], "params": params, "batch_stats": stats}, dwt.ll2(x, cfg.wavelet)
         )
         encoded = informed.informed_embed(lambda x: read(x)[0], images, bits, psnr)
         k_crop, k_aug = jax.random.split(key)

@@ -65,7 +65,7 @@ from mnerf_jax.hidden_encoder import encode_batch, init_encoder
 ARRAY_KEYS = ("encoder", "decoder", "opt", "opt_ft", "opt_inf")
 MAX_SKIPPED = 20  # consecutive steps with non-finite gradients before a run is declared diverged
 # Trajectory fields added after checkpoints were first written, with the value a checkpoint without them used.
-ADDED_FIELDS = {"decoder_init": "random"}
+ADDED_FIELDS = {"decoder_init": "random", "pool_margin": 0}
 # Config fields that only change the final evaluation: a finished run can be re-evaluated with --resume.
 EVAL_FIELDS = ("eval_images", "eval_sizes", "eval_augment_draws", "eval_informed_iterations", "check_images")
 
@@ -110,6 +110,8 @@ class DecoderTrainConfig:
     check_images: int = 8  # encoded held-out images stored (uint8) beside the decoder
     wavelet: str = "bior4.4"
     decoder_init: str = "filterbank"  # filterbank (decoder.filterbank_init) | random
+    # LL2 positions the decoder's pool skips at each side (decoder.with_pool_margin); 9 = receptive radius.
+    pool_margin: int = 0
     images_dir: str = ""  # extra training images (every image file under it)
 
     def to_dict(self) -> dict[str, Any]:
@@ -176,6 +178,7 @@ def init_state(cfg: DecoderTrainConfig) -> tuple[dict[str, Any], tuple]:
     decoder = dec.init_decoder(k_dec, cfg.bits)
     if cfg.decoder_init == "filterbank":
         decoder = dec.filterbank_init(decoder)
+    decoder = dec.with_pool_margin(decoder, cfg.pool_margin)
     tx_joint, tx_ft, tx_inf = make_optimizers(cfg)
     state = {
         "step": 0,
@@ -286,6 +289,12 @@ def train_decoder(
         raise MnerfError(f"--decoder-init must be one of {choices}, got {cfg.decoder_init!r}")
     if cfg.size % 4 or cfg.size < 16:
         raise MnerfError(f"--size must be a multiple of 4 and at least 16, got {cfg.size}")
+    smallest = min(cfg.size, *cfg.informed_sizes) if cfg.informed_steps else cfg.size
+    if cfg.pool_margin < 0 or (cfg.pool_margin and smallest // 4 <= 2 * cfg.pool_margin):
+        raise MnerfError(
+            f"--pool-margin {cfg.pool_margin} leaves no positions to pool in {smallest}-px training images "
+            f"(the LL2 side, {smallest // 4}, must exceed twice the margin; raise --size / --informed-sizes)"
+        )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoint.msgpack"

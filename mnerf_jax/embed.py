@@ -91,8 +91,8 @@ class EmbedState:
 
     Attributes:
       params: the watermarked field (``watermark.add_watermark`` layout).
-      decoder: decoder variables ``{"params", "batch_stats"}``; only ``params`` train (phase 2), BatchNorm
-        keeps its running statistics (eval mode).
+      decoder: decoder variables ``{"params", "batch_stats"[, "pooling"]}``; only ``params`` train (phase 2),
+        BatchNorm keeps its running statistics (eval mode).
       opt_state: optax state of :func:`make_optimizer` over ``{"field": params, "decoder": decoder params}``.
       step: ``[]`` int32, steps completed (phase 1 then phase 2).
       key: PRNG key of the run; step ``s`` uses ``fold_in(key, s)``.
@@ -224,14 +224,15 @@ def make_image_loss(
     key: jax.Array,
     message: jax.Array,
     target_image: jax.Array,
-    batch_stats: PyTree,
+    decoder_state: PyTree,
     vgg_params: Any = None,
 ) -> Callable[[jax.Array, PyTree], tuple[jax.Array, dict[str, jax.Array]]]:
     """The image-level loss ``(image [H, W, 3], decoder params) -> (loss, {"bce", "perceptual"})``.
 
     Phase 2: ``augment_per_step`` random augmentations (``key``) → LL2 → decoder → BCE(T) against
     ``message [L]``, plus (``lambda_clean``) BCE(T) of the equally augmented ``target_image`` against ½.
-    Phase 1: no augmentation, plus the perceptual term against ``target_image``.
+    Phase 1: no augmentation, plus the perceptual term against ``target_image``. ``decoder_state``: the
+    decoder's variables (BatchNorm statistics, pooling); their ``params`` are replaced by the argument.
     """
     cfg = spec.wm
 
@@ -242,7 +243,7 @@ def make_image_loss(
         if spec.phase == 2 and cfg.augment_per_step > 0:
             seen = augment.random_policy(key, seen, cfg.augment_strength, k=cfg.augment_per_step,
                                          p=cfg.augment_prob)  # fmt: skip
-        variables = {"params": dec_params, "batch_stats": batch_stats}
+        variables = {**decoder_state, "params": dec_params}
         return decoder_lib.apply_ll2(variables, dwt.ll2(seen, cfg.wavelet))[0]
 
     def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
@@ -283,8 +284,7 @@ def embed_step(
     k_render, k_aug = jax.random.split(key)
     message = batch["message"]
     target_image = batch["target"].reshape(h, w, 3)
-    batch_stats = state.decoder["batch_stats"]
-    image_loss = make_image_loss(spec, k_aug, message, target_image, batch_stats, vgg_params)
+    image_loss = make_image_loss(spec, k_aug, message, target_image, state.decoder, vgg_params)
     ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
     render_fn = render_patch_fn(spec, geometry, batch["id"])
     loss, aux, image, g_field, g_dec = deferred_grad(
@@ -313,7 +313,7 @@ def embed_step(
     }
     new_state = state.replace(
         params=new_values["field"],
-        decoder={"params": new_values["decoder"], "batch_stats": batch_stats},
+        decoder={**state.decoder, "params": new_values["decoder"]},
         opt_state=opt_state,
         step=state.step + 1,
     )
@@ -699,7 +699,7 @@ def embed(
             keys = keys_lib.generate_keys(num_ids, bits, cfg.min_hamming, cfg.key_seed, loaded.fingerprint)
             root = jax.random.key(cfg.seed)
             params = watermark.add_watermark(jax.random.fold_in(root, 0x3A7), source.params, cfg, num_ids)
-            dec_vars = {"params": loaded.variables["params"], "batch_stats": loaded.variables["batch_stats"]}
+            dec_vars = dict(loaded.variables)  # params, BatchNorm statistics, pooling margin if any
             tx = make_optimizer(cfg, config.train.adam_b1, config.train.adam_b2)
             state = EmbedState(
                 params=params, decoder=dec_vars,

@@ -55,7 +55,7 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     root = jax.random.key(0)
     params = watermark.add_watermark(jax.random.fold_in(root, 1), source.params, cfg, 4)
     dec = decoder_lib.init_decoder(jax.random.PRNGKey(0), 16)
-    dec_vars = {"params": dec["params"], "batch_stats": dec["batch_stats"]}
+    dec_vars = dict(dec)
     tx = embed.make_optimizer(cfg, config.train.adam_b1, config.train.adam_b2)
     state = embed.EmbedState(params=params, decoder=dec_vars,
                              opt_state=tx.init({"field": params, "decoder": dec_vars["params"]}),
@@ -97,8 +97,7 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
         s = spec()
         fn = embed.render_patch_fn(s, geometry, batch["id"])
         target = batch["target"].reshape(height, size, 3)
-        stats = dec_vars["batch_stats"]
-        image_loss = embed.make_image_loss(s, jax.random.key(4), batch["message"], target, stats)
+        image_loss = embed.make_image_loss(s, jax.random.key(4), batch["message"], target, dec_vars)
 
         @jax.jit
         def direct(params: dict, dec_params: dict) -> tuple:

@@ -212,6 +212,86 @@ def test_bad_decoder_files(tmp_path: Path, small_decoder: dict) -> None:
         dec.load_decoder(tmp_path / "other.npz")
 
 
+def test_interior_mean_skips_the_margin_and_falls_back_to_the_whole_mean() -> None:
+    x = jax.random.normal(jax.random.PRNGKey(4), (2, 12, 10, 5))
+    inner = x[:, 3:9, 3:7].mean(axis=(1, 2))
+    np.testing.assert_allclose(dec.interior_mean(x, 3), inner, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(dec.interior_mean(x, 0), x.mean(axis=(1, 2)), rtol=1e-5, atol=1e-6)
+    # No interior (10 ≤ 2·5): every position.
+    np.testing.assert_allclose(dec.interior_mean(x, 5), x.mean(axis=(1, 2)), rtol=1e-5, atol=1e-6)
+    traced = jax.jit(dec.interior_mean)(x, jnp.int32(3))  # the margin travels as an array
+    np.testing.assert_allclose(traced, x[:, 3:9, 3:7].mean(axis=(1, 2)), rtol=1e-5, atol=1e-6)
+
+
+def test_pool_margin_of_the_receptive_radius_makes_the_read_shift_invariant() -> None:
+    """On a periodic LL2 whose pooled interior holds whole periods, shifting the pattern leaves the logits
+    unchanged when the pool skips the padding-affected band, and changes them when it pools everywhere."""
+    variables = dec.filterbank_init(dec.init_decoder(jax.random.PRNGKey(0), 16))  # strong local responses
+    crops = jax.random.uniform(jax.random.PRNGKey(7), (40, 96, 96, 3))
+    variables = dec.calibrate_batch_norm(variables, dwt.ll2(crops[:8]))
+    radius = dec.receptive_radius(variables)
+    assert radius == 9
+    tile = 2.0 * jax.random.uniform(jax.random.PRNGKey(6), (1, 4, 4, 3))
+    side = 2 * radius + 5 * 4  # an interior of 5 × 5 periods
+    periodic = jnp.tile(tile, (1, side // 4 + 2, side // 4 + 2, 1))
+    ll2 = jnp.concatenate([periodic[:, :side, :side], periodic[:, 1 : side + 1, 3 : side + 3]])
+    pooled = dec.with_pool_margin(variables, radius)
+    assert dec.pool_margin(pooled) == radius and dec.pool_margin(variables) == 0
+    logits = dec.apply_ll2(pooled, ll2)
+    assert float(jnp.abs(logits).max()) > 1.0
+    np.testing.assert_allclose(logits[0], logits[1], rtol=1e-5, atol=1e-5)
+    everywhere = dec.apply_ll2(variables, ll2)
+    assert float(jnp.abs(everywhere[0] - everywhere[1]).max()) > 1e-2
+    train_logits, _ = dec.apply_ll2_train(pooled, ll2)
+    assert train_logits.shape == (2, 16)
+    whitened = dec.fit_whitening(pooled, [dwt.ll2(crops)])
+    assert dec.pool_margin(whitened) == radius
+    with pytest.raises(MnerfError, match="margin must be >= 0"):
+        dec.with_pool_margin(variables, -1)
+
+
+def test_pool_margin_is_saved_fingerprinted_and_absent_in_older_files(
+    tmp_path: Path, small_decoder: dict
+) -> None:
+    pooled = dec.with_pool_margin(small_decoder, 9)
+    assert dec.fingerprint(pooled) != dec.fingerprint(small_decoder)
+    meta = dec.save_decoder(tmp_path / "p.npz", pooled)
+    loaded = dec.load_decoder(tmp_path / "p.npz")
+    assert meta["pool_margin"] == 9 and dec.pool_margin(loaded.variables) == 9
+    assert loaded.fingerprint == dec.fingerprint(pooled)
+    # A file from before the setting existed (no pool_margin entry) pools everywhere, fingerprint unchanged.
+    dec.save_decoder(tmp_path / "old.npz", small_decoder)
+    with np.load(tmp_path / "old.npz", allow_pickle=False) as data:
+        arrays = {name: np.array(data[name]) for name in data.files}
+    meta = json.loads(arrays["__metadata__"].tobytes())
+    del meta["pool_margin"]
+    arrays["__metadata__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(tmp_path / "old.npz", **arrays)
+    assert dec.pool_margin(dec.load_decoder(tmp_path / "old.npz").variables) == 0
+    # The margin edited in the metadata: the fingerprint no longer matches.
+    meta["pool_margin"] = 4
+    arrays["__metadata__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(tmp_path / "edited.npz", **arrays)
+    with pytest.raises(MnerfError, match="fingerprint"):
+        dec.load_decoder(tmp_path / "edited.npz")
+
+
+def test_training_with_a_pool_margin_needs_large_enough_images(tmp_path: Path) -> None:
+    cfg = decoder_train.DecoderTrainConfig(bits=8, pool_margin=9)  # 64-px windows: LL2 16 ≤ 18
+    with pytest.raises(MnerfError, match="--pool-margin 9 leaves no positions to pool in 64-px"):
+        decoder_train.train_decoder(cfg, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run" / "checkpoint.msgpack").exists()
+    cfg = decoder_train.DecoderTrainConfig(bits=8, pool_margin=9, size=80, informed_sizes=(80,), batch=2)
+    state, (_, _, tx_inf) = decoder_train.init_state(cfg)
+    assert dec.pool_margin(state["decoder"]) == 9
+    step = decoder_steps.make_informed_step(cfg, tx_inf, augmented=False)
+    arrays = {k: state[k] for k in decoder_train.ARRAY_KEYS}
+    images = jnp.asarray(decoder_train.heldout_images(2, 80))
+    arrays, metrics = step(arrays, images, jnp.asarray(decoder_train.heldout_messages(2, 8)),
+                           jax.random.PRNGKey(0), jnp.float32(25.0))  # fmt: skip
+    assert dec.pool_margin(arrays["decoder"]) == 9 and np.isfinite(float(metrics["loss"]))
+
+
 @pytest.mark.parametrize("bits", dec.SHIPPED_BITS)
 def test_shipped_decoder_reproduces_recorded_accuracy(bits: int) -> None:
     if not dec.shipped_check_path(bits).is_file():
@@ -383,7 +463,7 @@ def test_checkpoint_from_before_decoder_init_existed_reads_as_random(tmp_path: P
     decoder_train.save_checkpoint(path, state, cfg)
     payload = flax.serialization.msgpack_restore(path.read_bytes())
     config = json.loads(payload["config"])
-    del config["decoder_init"]  # as a checkpoint written before the field existed
+    del config["decoder_init"], config["pool_margin"]  # as a checkpoint written before the fields existed
     payload["config"] = json.dumps(config)
     path.write_bytes(flax.serialization.msgpack_serialize(payload))
     assert decoder_train.load_checkpoint(path, state, cfg)["step"] == 0

@@ -252,7 +252,7 @@ def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_messag
         cfg = WatermarkConfig(augment_per_step=0, lambda_clean=lambda_clean)
         spec = E.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
                           width=24, density_budget=1, colour_budget=1)  # fmt: skip
-        return E.make_image_loss(spec, jax.random.PRNGKey(3), message, target, dec["batch_stats"])
+        return E.make_image_loss(spec, jax.random.PRNGKey(3), message, target, dec)
 
     with_clean, without = loss_fn(0.5), loss_fn(0.0)
     clean_logits = decoder.apply_ll2(dec, dwt.ll2(target[None]))[0]

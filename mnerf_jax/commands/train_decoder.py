@@ -13,6 +13,16 @@ HELP = (
 )
 
 
+def _sides(text: str) -> tuple[int, ...]:
+    try:
+        sides = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated image sides, got {text!r}") from None
+    if not sides or min(sides) < 16:
+        raise argparse.ArgumentTypeError(f"image sides must be at least 16, got {text!r}")
+    return sides
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from mnerf_jax.decoder_train import DecoderTrainConfig
 
@@ -37,6 +47,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.informed_margin,
         help="informed stage: encode crops this much larger and read a random window of each, so only "
         f"shift-robust watermarks pay ({d.informed_margin}: whole crops)",
+    )
+    parser.add_argument(
+        "--informed-sizes",
+        type=_sides,
+        default=d.informed_sizes,
+        help="image sides of the informed steps, in turn, comma-separated "
+        f"({','.join(map(str, d.informed_sizes))})",
+    )
+    parser.add_argument(
+        "--pool-margin",
+        type=int,
+        default=d.pool_margin,
+        help="the decoder's pool skips this many LL2 positions at each side; 9 (its receptive-field radius) "
+        f"makes the read shift-invariant and needs training images larger than 72 px ({d.pool_margin})",
+    )
+    parser.add_argument(
+        "--eval-sizes",
+        type=_sides,
+        default=d.eval_sizes,
+        help=f"image sides of the held-out evaluation ({','.join(map(str, d.eval_sizes))})",
     )
     parser.add_argument(
         "--decoder-init",
@@ -79,6 +109,9 @@ def run(args: argparse.Namespace) -> int:
         bits=args.bits,
         informed_steps=args.informed_steps,
         informed_margin=args.informed_margin,
+        informed_sizes=args.informed_sizes,
+        pool_margin=args.pool_margin,
+        eval_sizes=args.eval_sizes,
         decoder_init=args.decoder_init,
         steps=args.steps,
         finetune_steps=args.finetune_steps,
