@@ -227,7 +227,7 @@ def test_pool_margin_of_the_receptive_radius_makes_the_read_shift_invariant() ->
     """On a periodic LL2 whose pooled interior holds whole periods, shifting the pattern leaves the logits
     unchanged when the pool skips the padding-affected band, and changes them when it pools everywhere."""
     variables = dec.filterbank_init(dec.init_decoder(jax.random.PRNGKey(0), 16))  # strong local responses
-    crops = jax.random.uniform(jax.random.PRNGKey(7), (40, 96, 96, 3))
+    crops = jax.random.uniform(jax.random.PRNGKey(7), (20, 80, 80, 3))
     variables = dec.calibrate_batch_norm(variables, dwt.ll2(crops[:8]))
     radius = dec.receptive_radius(variables)
     assert radius == 9
@@ -282,14 +282,7 @@ def test_training_with_a_pool_margin_needs_large_enough_images(tmp_path: Path) -
         decoder_train.train_decoder(cfg, tmp_path / "run", progress=False)
     assert not (tmp_path / "run" / "checkpoint.msgpack").exists()
     cfg = decoder_train.DecoderTrainConfig(bits=8, pool_margin=9, size=80, informed_sizes=(80,), batch=2)
-    state, (_, _, tx_inf) = decoder_train.init_state(cfg)
-    assert dec.pool_margin(state["decoder"]) == 9
-    step = decoder_steps.make_informed_step(cfg, tx_inf, augmented=False)
-    arrays = {k: state[k] for k in decoder_train.ARRAY_KEYS}
-    images = jnp.asarray(decoder_train.heldout_images(2, 80))
-    arrays, metrics = step(arrays, images, jnp.asarray(decoder_train.heldout_messages(2, 8)),
-                           jax.random.PRNGKey(0), jnp.float32(25.0))  # fmt: skip
-    assert dec.pool_margin(arrays["decoder"]) == 9 and np.isfinite(float(metrics["loss"]))
+    assert dec.pool_margin(decoder_train.init_state(cfg)[0]["decoder"]) == 9
 
 
 @pytest.mark.parametrize("bits", dec.SHIPPED_BITS)
@@ -374,8 +367,9 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
 
 def test_informed_step_with_a_margin_reads_windows_and_updates_the_decoder() -> None:
     """With ``informed_margin`` the decoder reads a smaller random window of each encoded image; the step
-    still updates the decoder, with finite metrics."""
-    cfg = decoder_train.DecoderTrainConfig(bits=8, size=16, informed_margin=4, batch=2, informed_steps=4)
+    still updates the decoder, with finite metrics, and keeps its pooling margin (1: LL2 windows of 4²)."""
+    cfg = decoder_train.DecoderTrainConfig(bits=8, size=16, informed_margin=4, batch=2, informed_steps=4,
+                                           informed_sizes=(16,), pool_margin=1)  # fmt: skip
     state, (_, _, tx_inf) = decoder_train.init_state(cfg)
     step = decoder_steps.make_informed_step(cfg, tx_inf, augmented=False)
     arrays = {k: state[k] for k in decoder_train.ARRAY_KEYS}
@@ -388,6 +382,7 @@ def test_informed_step_with_a_margin_reads_windows_and_updates_the_decoder() -> 
     after = arrays["decoder"]["params"]
     moved = jax.tree.map(lambda a, b: float(np.abs(np.asarray(a) - b).max()), after, before)
     assert max(jax.tree.leaves(moved)) > 0.0
+    assert dec.pool_margin(arrays["decoder"]) == 1
 
 
 def test_checkpoint_round_trip(tmp_path: Path) -> None:
