@@ -140,12 +140,14 @@ def with_pool_margin(variables: Mapping[str, Any], margin: int) -> Variables:
     return out
 
 
+def _module_variables(variables: Mapping[str, Any]) -> Variables:
+    """The collections the module reads: params, batch_stats and pooling when set (nothing else)."""
+    return {k: variables[k] for k in ("params", "batch_stats", "pooling") if k in variables}
+
+
 def _with_weights(variables: Mapping[str, Any], params: Any, batch_stats: Any) -> Variables:
-    """``variables`` with new weights, keeping the pooling setting (and dropping anything else)."""
-    out = {"params": params, "batch_stats": batch_stats}
-    if "pooling" in variables:
-        out["pooling"] = variables["pooling"]
-    return out
+    """``variables`` with new weights, keeping the pooling setting."""
+    return _module_variables({**variables, "params": params, "batch_stats": batch_stats})
 
 
 def architecture(variables: Mapping[str, Any]) -> tuple[int, int, int]:
@@ -221,14 +223,14 @@ def _compiled_init(bits: int, channels: int, depth: int) -> Any:
 @functools.partial(jax.jit, static_argnames=("whiten",))
 def apply_ll2(variables: Mapping[str, Any], ll2: jax.Array, whiten: bool = True) -> jax.Array:
     """Eval-mode logits (BatchNorm running statistics) of LL2 sub-bands ``[B, h, w, 3]`` → ``[B, bits]``."""
-    variables = _with_weights(variables, variables["params"], variables["batch_stats"])
+    variables = _module_variables(variables)
     return module_for(variables).apply(variables, ll2, train=False, whiten=whiten)
 
 
 @jax.jit
 def apply_ll2_train(variables: Mapping[str, Any], ll2: jax.Array) -> tuple[jax.Array, Any]:
     """Train-mode logits ``[B, bits]`` (batch statistics) and the updated ``batch_stats``."""
-    variables = _with_weights(variables, variables["params"], variables["batch_stats"])
+    variables = _module_variables(variables)
     logits, updates = module_for(variables).apply(variables, ll2, train=True, mutable=["batch_stats"])
     return logits, updates["batch_stats"]
 
@@ -325,8 +327,9 @@ def fingerprint(variables: Mapping[str, Any]) -> str:
     """sha256 over the leaves' names, dtypes, shapes and little-endian bytes, in sorted order (and the pooling
     margin when there is one, so fingerprints of decoders without one are unchanged)."""
     digest = hashlib.sha256()
-    if pool_margin(variables):
-        digest.update(f"pool_margin|{pool_margin(variables)}\n".encode())
+    margin = pool_margin(variables)
+    if margin:
+        digest.update(f"pool_margin|{margin}\n".encode())
     for name, value in _flatten(
         {"params": variables["params"], "batch_stats": variables["batch_stats"]}
     ).items():

@@ -24,6 +24,7 @@ def _sides(text: str) -> tuple[int, ...]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from mnerf_jax.decoder import DECODER_INITS
     from mnerf_jax.decoder_train import DecoderTrainConfig
 
     d = DecoderTrainConfig()
@@ -70,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--decoder-init",
-        choices=("filterbank", "random"),
+        choices=DECODER_INITS,
         default=d.decoder_init,
         help="decoder start: a fixed local filter bank in the first block with the middle blocks near "
         f"identity, or random ({d.decoder_init})",
