@@ -3,12 +3,10 @@ fitted + watermarked procedural run built once per session (``tiny``)."""
 
 from __future__ import annotations
 
-import atexit
 import dataclasses
-import functools
+import fcntl
 import os
 import shutil
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -113,23 +111,22 @@ def random_decoder(path: Path, bits: int, images: np.ndarray | None = None) -> P
     return path
 
 
-@functools.cache
-def tiny_runs() -> TinyRuns:
-    """Build the tiny runs once per session (about a minute on one core)."""
+def build_tiny_runs(root: Path) -> TinyRuns:
+    """Fit, make a decoder and embed into ``root`` (about a minute on one core)."""
     from mnerf_jax import embed
     from mnerf_jax.commands.fit import fit_run
     from mnerf_jax.config import load_config
     from mnerf_jax.data import load_scene
 
-    root = Path(tempfile.mkdtemp(prefix="mnerf-embed-test-"))
-    atexit.register(shutil.rmtree, root, True)
     config = load_config("procedural", TINY_FIT)
     fit_run(config, None, root / "fit", evaluate=False, quiet=True)
     scene = load_scene(None, config.data, config.render, ("train",))
     decoder = random_decoder(root / "dec8.npz", 8, scene.split("train").images)
     t0 = time.perf_counter()
     embed.embed(root / "fit", root / "wm", 2, 8, overrides=TINY_EMBED, decoder_path=decoder, progress=False)
-    return TinyRuns(root, root / "fit", decoder, root / "wm", time.perf_counter() - t0)
+    seconds = time.perf_counter() - t0
+    (root / "seconds.txt").write_text(f"{seconds!r}\n")
+    return TinyRuns(root, root / "fit", decoder, root / "wm", seconds)
 
 
 @pytest.fixture(scope="session")
@@ -139,6 +136,22 @@ def make_decoder() -> Callable[..., Path]:
 
 
 @pytest.fixture(scope="session")
-def tiny() -> TinyRuns:
-    """The tiny fitted and watermarked runs (shared: tests that write into them work on copies)."""
-    return tiny_runs()
+def tiny(tmp_path_factory: pytest.TempPathFactory) -> TinyRuns:
+    """The tiny fitted and watermarked runs, built once per test session (shared: tests that write into them
+    work on copies or on new names under ``root``).
+
+    Under pytest-xdist (``-n N``) every worker has its own session; the first worker to ask builds the runs in
+    the directory the workers share, under an exclusive lock, and the others wait for it and reuse them
+    instead of spending another minute of the two cores on the same build."""
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    root = shared / "tiny-runs"
+    with open(shared / "tiny-runs.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # POSIX; released when the file closes
+        done = root / "seconds.txt"
+        if done.is_file():
+            return TinyRuns(root, root / "fit", root / "dec8.npz", root / "wm", float(done.read_text()))
+        if root.exists():
+            shutil.rmtree(root)  # a build interrupted before it finished
+        root.mkdir()
+        return build_tiny_runs(root)
