@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mnerf_jax import decoder as dec
+from mnerf_jax import decoder_io
 from mnerf_jax.errors import MnerfError
 
 _STORAGE_DTYPES = {
@@ -226,8 +226,8 @@ def state_dict_to_variables(state: Mapping[str, np.ndarray]) -> tuple[dict[str, 
     else:
         params["whiten"] = {"kernel": np.eye(bits, dtype=np.float32), "bias": np.zeros(bits, np.float32)}
     variables = {"params": params, "batch_stats": stats}
-    expected = dec._expected_shapes(bits, channels, depth)
-    for name, value in dec._flatten(variables).items():
+    expected = decoder_io._expected_shapes(bits, channels, depth)
+    for name, value in decoder_io._flatten(variables).items():
         if name not in expected or tuple(value.shape) != expected[name]:
             raise MnerfError(
                 f"not a HiDDeN decoder: {name} has shape {tuple(value.shape)}, expected {expected.get(name)}"
@@ -241,7 +241,7 @@ def convert_torchscript_decoder(
 ) -> dict[str, Any]:
     """Convert a stable-signature / WateRF decoder zip (TorchScript or torch.save) to an mnerf decoder file.
 
-    The result is read with :func:`mnerf_jax.decoder.load_decoder`. ``wavelet`` is recorded as the sub-band
+    The result is read with :func:`mnerf_jax.decoder_io.load_decoder`. ``wavelet`` is recorded as the sub-band
     the
     decoder reads (WateRF feeds it LL2 of ``bior4.4``). Returns the written metadata.
     """
@@ -251,4 +251,4 @@ def convert_torchscript_decoder(
         "whitened": whitened,
         "training": {"recipe": "converted", "source": Path(zip_path).name, "tensors": len(state)},
     }
-    return dec.save_decoder(out_path, variables, meta, wavelet=wavelet)
+    return decoder_io.save_decoder(out_path, variables, meta, wavelet=wavelet)

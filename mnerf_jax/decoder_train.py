@@ -47,7 +47,7 @@ import numpy as np
 import optax
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import dwt
+from mnerf_jax import decoder_io, dwt
 from mnerf_jax.decoder_eval import clean_accuracy, evaluate_sizes
 from mnerf_jax.decoder_images import (
     TRAIN_PHOTOS,
@@ -443,7 +443,7 @@ def finish(cfg: DecoderTrainConfig, state: dict[str, Any], out: Path, wall: floa
         "check_batch_size": check_size,
         "whitening": {k: float(v) for k, v in state.get("whitening_report", {}).items()},
     }
-    meta = dec.save_decoder(
+    meta = decoder_io.save_decoder(
         out / "decoder.npz",
         dec_vars,
         {"whitened": True, "training": training, "eval": evaluation},
@@ -456,7 +456,7 @@ def finish(cfg: DecoderTrainConfig, state: dict[str, Any], out: Path, wall: floa
         **training,
         **evaluation,
     }
-    flat = dec._flatten({"params": enc_vars["params"], "batch_stats": enc_vars["batch_stats"]})
+    flat = decoder_io._flatten({"params": enc_vars["params"], "batch_stats": enc_vars["batch_stats"]})
     np.savez_compressed(
         out / "encoder.npz",
         **{k: np.asarray(v, np.float32) for k, v in flat.items()},

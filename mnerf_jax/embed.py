@@ -52,7 +52,7 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
-from mnerf_jax import augment, dwt, field, grids, losses, render, watermark
+from mnerf_jax import augment, decoder_io, dwt, field, grids, losses, render, watermark
 from mnerf_jax import config as config_lib
 from mnerf_jax import decoder as decoder_lib
 from mnerf_jax import keys as keys_lib
@@ -338,11 +338,11 @@ def load_source(run_dir: str | Path) -> runs.LoadedRun:
     return runs.load_run(run_dir)
 
 
-def load_decoder_for(bits: int, path: str | Path | None) -> decoder_lib.LoadedDecoder:
+def load_decoder_for(bits: int, path: str | Path | None) -> decoder_io.LoadedDecoder:
     """``--decoder FILE`` or the shipped decoder for ``bits``; MnerfError on a bit-length mismatch."""
     if path is None:
-        return decoder_lib.load_decoder(decoder_lib.shipped_decoder_path(bits), expect_bits=bits)
-    loaded = decoder_lib.load_decoder(path)
+        return decoder_io.load_decoder(decoder_io.shipped_decoder_path(bits), expect_bits=bits)
+    loaded = decoder_io.load_decoder(path)
     if loaded.bits != bits:
         raise EmbedError(f"--decoder {path} reads {loaded.bits}-bit messages, not --bits {bits}")
     return loaded
@@ -463,11 +463,11 @@ def _restore(store: CheckpointStore, run_dir: Path, step: int | None = None,
     return config, tree, meta
 
 
-def _keys_and_decoder(run_dir: Path) -> tuple[keys_lib.KeySet, decoder_lib.LoadedDecoder]:
+def _keys_and_decoder(run_dir: Path) -> tuple[keys_lib.KeySet, decoder_io.LoadedDecoder]:
     """``keys.json`` and ``decoder.npz`` of a watermarked run, checked against each other."""
     if not (run_dir / DECODER_FILE).is_file():
         raise EmbedError(f"{run_dir} has no {DECODER_FILE} (the embedding has not written a checkpoint yet)")
-    dec = decoder_lib.load_decoder(run_dir / DECODER_FILE)
+    dec = decoder_io.load_decoder(run_dir / DECODER_FILE)
     keys = keys_lib.load_keys(run_dir, decoder_fingerprint=dec.fingerprint, expect_bits=dec.bits)
     return keys, dec
 
@@ -539,7 +539,7 @@ def load_watermarked_run(run_dir: str | Path, step: int | None = None) -> runs.L
     return runs.load_run(run_dir, step)
 
 
-def load_keys_and_decoder(run_dir: str | Path) -> tuple[keys_lib.KeySet, decoder_lib.LoadedDecoder]:
+def load_keys_and_decoder(run_dir: str | Path) -> tuple[keys_lib.KeySet, decoder_io.LoadedDecoder]:
     """The keys and the (fine-tuned) decoder of a watermarked run, without restoring its field."""
     require_watermarked(run_dir)
     return _keys_and_decoder(Path(run_dir))
@@ -644,7 +644,7 @@ def embed(
       num_ids, bits: ``N`` IDs with ``L``-bit messages (the decoder must read ``L`` bits).
       preset, overrides: the watermark config (``--config``, ``--set``).
       decoder_path: the decoder to start from (default: the shipped one for ``bits``); ``"fresh"``: a
-        random-init decoder whitened on the scene's training images (``decoder.fresh_decoder``).
+        random-init decoder whitened on the scene's training images (``decoder_io.fresh_decoder``).
       data_path: the scene (default: the one the source run recorded).
       resume: continue from ``out_dir``'s latest checkpoint (a fresh start when there is none).
       stop_at: stop after this many steps in all (a checkpoint is written there).
@@ -654,7 +654,7 @@ def embed(
     source = load_source(source_run)
     config = resolve_config(source, preset, overrides, num_ids, bits)
     cfg = config.watermark
-    fresh = decoder_path is not None and str(decoder_path) == decoder_lib.FRESH
+    fresh = decoder_path is not None and str(decoder_path) == decoder_io.FRESH
     loaded = None if fresh else load_decoder_for(bits, decoder_path)
     resuming = runs.prepare_output(out, config, resume=resume, kind=WM_KIND) and _has_checkpoints(out)
     keys = None
@@ -666,8 +666,8 @@ def embed(
     split = scene.split("train")
     check_rgb_images(split.images, f"{data_path or source.data_path or 'procedural scene'} (train split)")
     if loaded is None:
-        loaded = decoder_lib.fresh_decoder(bits, split.images, seed=cfg.seed, wavelet=cfg.wavelet)
-    decoder_source = decoder_lib.FRESH if fresh else str(Path(loaded.path).resolve())
+        loaded = decoder_io.fresh_decoder(bits, split.images, seed=cfg.seed, wavelet=cfg.wavelet)
+    decoder_source = decoder_io.FRESH if fresh else str(Path(loaded.path).resolve())
     height, width = int(split.images.shape[1]), int(split.images.shape[2])
     layout = patch_layout(height, width, cfg.patch_size)
     if cfg.lambda_ssim and layout.size < 11:
@@ -756,8 +756,8 @@ class _Loop:
         meta = _checkpoint_meta(self.config, state, self.geometry, self.keys, self.budgets())
         self.store.save(step, _checkpoint_tree(state, self.geometry), meta)
         self.store.wait()
-        dec_meta = decoder_lib.save_decoder(self.out / DECODER_FILE, state.decoder, {"embed_step": step},
-                                            wavelet=self.config.watermark.wavelet)  # fmt: skip
+        dec_meta = decoder_io.save_decoder(self.out / DECODER_FILE, state.decoder, {"embed_step": step},
+                                           wavelet=self.config.watermark.wavelet)  # fmt: skip
         self.keys = keys_lib.with_fingerprint(self.keys, dec_meta["fingerprint"])
         keys_lib.save_keys(self.out, self.keys)
         runs.write_json_atomic(

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import dwt
+from mnerf_jax import decoder_io, dwt
 from mnerf_jax.errors import MnerfError
 
 PIXEL_BUDGET = 1 << 19  # image pixels per decoder call (chunks of 52 images at 100², 1 at 800²)
@@ -128,8 +128,8 @@ def decode_paths(
     return out
 
 
-def resolve_decoder(path: str | Path | None = None, bits: int | None = None) -> dec.LoadedDecoder:
+def resolve_decoder(path: str | Path | None = None, bits: int | None = None) -> decoder_io.LoadedDecoder:
     """A decoder file given by path, else the shipped decoder for ``bits`` (default 16)."""
     if path is not None:
-        return dec.load_decoder(path, expect_bits=bits)
-    return dec.load_shipped_decoder(16 if bits is None else bits)
+        return decoder_io.load_decoder(path, expect_bits=bits)
+    return decoder_io.load_shipped_decoder(16 if bits is None else bits)

@@ -18,8 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mnerf_jax import decoder as dec
-from mnerf_jax import dwt, informed
+from mnerf_jax import decoder_io, dwt, informed
 from mnerf_jax.errors import MnerfError
 
 if TYPE_CHECKING:
@@ -126,4 +125,4 @@ def load_encoder(path: str | Path) -> tuple[dict[str, Any], DecoderTrainConfig]:
         raise MnerfError(f"encoder file {path} is unreadable ({err})") from None
     known = {f.name for f in dataclasses.fields(DecoderTrainConfig)}
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["config"].items() if k in known}
-    return jax.tree.map(jnp.asarray, dec._unflatten(arrays)), DecoderTrainConfig(**values)
+    return jax.tree.map(jnp.asarray, decoder_io._unflatten(arrays)), DecoderTrainConfig(**values)

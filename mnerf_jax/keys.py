@@ -294,8 +294,9 @@ def load_keys(
 ) -> KeySet:
     """Read ``run_dir/keys.json``, checking it against the decoder that will read the renders.
 
-    ``expect_bits``: the decoder's message length; ``decoder_fingerprint``: ``decoder.fingerprint`` of the
-    decoder's variables (checked only where both it and the file have one). Each mismatch is a KeysError.
+    ``expect_bits``: the decoder's message length; ``decoder_fingerprint``: ``decoder_io.fingerprint`` of
+    the decoder's variables (checked only where both it and the file have one). Each mismatch is a
+    KeysError.
     """
     path = Path(run_dir) / KEYS_FILE
     if not path.is_file():

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import dwt, extract
+from mnerf_jax import decoder_io, dwt, extract
 
 
 def best_of(fn: Callable[[], object], repeats: int, min_time: float = 0.2) -> float:
@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="one JSON object per row")
     args = parser.parse_args(argv)
 
-    loaded = dec.load_shipped_decoder(args.bits)
+    loaded = decoder_io.load_shipped_decoder(args.bits)
     try:
         import torch
 

@@ -19,13 +19,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import informed
+from mnerf_jax import decoder_io, informed
 from mnerf_jax.decoder_images import heldout_images, heldout_messages
 
 BANDS = ((0, 4), (4, 8), (8, 16), (16, 32), (32, 64), (64, 10**6))  # distance to the border, pixels
 
 
-def frame_lock_figures(loaded: dec.LoadedDecoder, size: int, n: int, psnr: float) -> dict:
+def frame_lock_figures(loaded: decoder_io.LoadedDecoder, size: int, n: int, psnr: float) -> dict:
     images = jnp.asarray(heldout_images(n, size))
     bits = jnp.asarray(heldout_messages(n, loaded.bits))
 
@@ -60,7 +60,7 @@ def main() -> None:
     parser.add_argument("--psnr", type=float, default=35.5, help="PSNR of the embedding (35.5)")
     parser.add_argument("--json", action="store_true", help="one JSON line per size")
     args = parser.parse_args()
-    loaded = dec.load_decoder(args.decoder)
+    loaded = decoder_io.load_decoder(args.decoder)
     print(f"decoder {args.decoder}: {loaded.bits} bits, pooling margin {dec.pool_margin(loaded.variables)}")
     for size in (int(s) for s in args.sizes.split(",")):
         fig = frame_lock_figures(loaded, size, args.images, args.psnr)

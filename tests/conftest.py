@@ -99,7 +99,7 @@ def random_decoder(path: Path, bits: int, images: np.ndarray | None = None) -> P
     import jax
     import jax.numpy as jnp
 
-    from mnerf_jax import decoder, dwt
+    from mnerf_jax import decoder, decoder_io, dwt
 
     variables = decoder.init_decoder(jax.random.PRNGKey(0), bits)
     if images is not None:
@@ -107,7 +107,9 @@ def random_decoder(path: Path, bits: int, images: np.ndarray | None = None) -> P
         batch = np.concatenate([images, images[:, ::-1], images[:, :, ::-1],
                                 np.clip(images + rng.normal(0, 0.05, images.shape), 0, 1)]).astype(np.float32)
         variables = decoder.fit_whitening(variables, [dwt.ll2(jnp.asarray(batch))])
-    decoder.save_decoder(path, variables, {"note": "random init, whitened on the procedural scene (tests)"})
+    decoder_io.save_decoder(
+        path, variables, {"note": "random init, whitened on the procedural scene (tests)"}
+    )
     return path
 
 

@@ -115,9 +115,9 @@ TINY_WATERMARK = [
 
 def test_demo_runs_its_steps_into_a_folder(tmp_path, mnerf, monkeypatch):
     # Without a 16-bit decoder (none shipped, no --decoder) the watermark step starts from a fresh one.
-    from mnerf_jax import decoder
+    from mnerf_jax import decoder_io
 
-    monkeypatch.setattr(decoder, "shipped_decoder_path", lambda bits: tmp_path / f"absent_l{bits}.npz")
+    monkeypatch.setattr(decoder_io, "shipped_decoder_path", lambda bits: tmp_path / f"absent_l{bits}.npz")
     out = tmp_path / "demo"
     code, stdout, err = mnerf("demo", "--out", out, *_sets(TINY + TINY_WATERMARK), "--frames", "2", "--quiet")
     assert code == 0, err

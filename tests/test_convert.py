@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mnerf_jax import convert
+from mnerf_jax import convert, decoder_io
 from mnerf_jax import decoder as dec
 from mnerf_jax.errors import MnerfError
 
@@ -263,7 +263,7 @@ def test_torchscript_zip_round_trip(tmp_path: Path) -> None:
 
     meta = convert.convert_torchscript_decoder(zip_path, tmp_path / "converted.npz")
     assert meta["whitened"] is True and meta["bits"] == 8
-    loaded = dec.load_decoder(tmp_path / "converted.npz", expect_bits=8)
+    loaded = decoder_io.load_decoder(tmp_path / "converted.npz", expect_bits=8)
     params, stats = loaded.variables["params"], loaded.variables["batch_stats"]
     w, b, g, beta, mean, var = model[0][2]
     np.testing.assert_array_equal(params["block_2"]["conv"]["kernel"], w.transpose(2, 3, 1, 0))
@@ -286,7 +286,7 @@ def test_state_dict_zip_with_other_names(tmp_path: Path) -> None:
     write_zip(zip_path, state_dict(model), root="archive")
     meta = convert.convert_torchscript_decoder(zip_path, tmp_path / "converted.npz")
     assert meta["whitened"] is False and meta["bits"] == 16 and meta["depth"] == 3
-    loaded = dec.load_decoder(tmp_path / "converted.npz")
+    loaded = decoder_io.load_decoder(tmp_path / "converted.npz")
     np.testing.assert_array_equal(
         loaded.variables["params"]["whiten"]["kernel"], np.eye(16, dtype=np.float32)
     )

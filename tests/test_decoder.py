@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import decoder_steps, decoder_train, dwt, hidden_encoder, informed
+from mnerf_jax import decoder_io, decoder_steps, decoder_train, dwt, hidden_encoder, informed
 from mnerf_jax.errors import MnerfError
 
 
@@ -123,7 +123,7 @@ def test_batch_norm_calibration_makes_eval_mode_match_train_mode() -> None:
 
 def test_fresh_decoder_has_unit_logits_and_a_moderate_whitening_gain() -> None:
     images = np.random.default_rng(0).uniform(0.2, 0.8, (40, 32, 32, 3)).astype(np.float32)
-    fresh = dec.fresh_decoder(16, images, max_images=40)
+    fresh = decoder_io.fresh_decoder(16, images, max_images=40)
     logits = np.asarray(dec.decode_logits(fresh.variables, jnp.asarray(images)), np.float64)
     np.testing.assert_allclose(np.cov(logits, rowvar=False, bias=True), np.eye(16), atol=1e-2)
     # Uncalibrated BatchNorm left the raw outputs ~1e-3 apart and the whitening kernel ~4e3 (every decoder
@@ -160,11 +160,11 @@ def test_filterbank_init_sets_the_first_block_to_signed_dct_patterns_and_the_mid
 
 def test_save_load_round_trip(tmp_path: Path, small_decoder: dict) -> None:
     path = tmp_path / "d.npz"
-    meta = dec.save_decoder(path, small_decoder, {"training": {"note": "unit test"}}, wavelet="haar")
-    loaded = dec.load_decoder(path, expect_bits=16)
+    meta = decoder_io.save_decoder(path, small_decoder, {"training": {"note": "unit test"}}, wavelet="haar")
+    loaded = decoder_io.load_decoder(path, expect_bits=16)
     assert loaded.bits == 16 and loaded.wavelet == "haar" and loaded.fingerprint == meta["fingerprint"]
     assert loaded.metadata["training"] == {"note": "unit test"}
-    assert dec.fingerprint(loaded.variables) == dec.fingerprint(small_decoder)
+    assert decoder_io.fingerprint(loaded.variables) == decoder_io.fingerprint(small_decoder)
     for a, b in zip(jax.tree.leaves(loaded.variables), jax.tree.leaves(small_decoder), strict=True):
         np.testing.assert_array_equal(a, b)
     with np.load(path, allow_pickle=False) as data:  # a plain npz: no pickled objects anywhere
@@ -173,16 +173,16 @@ def test_save_load_round_trip(tmp_path: Path, small_decoder: dict) -> None:
 
 def test_bad_decoder_files(tmp_path: Path, small_decoder: dict) -> None:
     path = tmp_path / "d.npz"
-    dec.save_decoder(path, small_decoder)
+    decoder_io.save_decoder(path, small_decoder)
     with pytest.raises(MnerfError, match="decodes 16-bit messages, but 48 bits are expected"):
-        dec.load_decoder(path, expect_bits=48)
+        decoder_io.load_decoder(path, expect_bits=48)
     with pytest.raises(MnerfError, match="does not exist"):
-        dec.load_decoder(tmp_path / "absent.npz")
+        decoder_io.load_decoder(tmp_path / "absent.npz")
 
     truncated = tmp_path / "truncated.npz"
     truncated.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
     with pytest.raises(MnerfError, match="corrupt or truncated"):
-        dec.load_decoder(truncated)
+        decoder_io.load_decoder(truncated)
 
     # Weights changed after saving: the fingerprint no longer matches.
     tampered = tmp_path / "tampered.npz"
@@ -191,11 +191,11 @@ def test_bad_decoder_files(tmp_path: Path, small_decoder: dict) -> None:
     arrays["params/block_4/conv/kernel"][0, 0, 0, 0] += 1.0
     np.savez(tampered, **arrays)
     with pytest.raises(MnerfError, match="fingerprint"):
-        dec.load_decoder(tampered)
+        decoder_io.load_decoder(tampered)
 
     # Metadata that claims 16 bits over the arrays of an 8-bit decoder: wrong shapes.
     eight = dec.init_decoder(jax.random.PRNGKey(5), 8)
-    dec.save_decoder(tmp_path / "eight.npz", eight)
+    decoder_io.save_decoder(tmp_path / "eight.npz", eight)
     with np.load(tmp_path / "eight.npz", allow_pickle=False) as data:
         arrays = {name: np.array(data[name]) for name in data.files}
     meta = json.loads(arrays["__metadata__"].tobytes())
@@ -203,13 +203,13 @@ def test_bad_decoder_files(tmp_path: Path, small_decoder: dict) -> None:
     arrays["__metadata__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     np.savez(tmp_path / "lying.npz", **arrays)
     with pytest.raises(MnerfError, match=r"has shape \(8,\), expected \(16,\)"):
-        dec.load_decoder(tmp_path / "lying.npz")
+        decoder_io.load_decoder(tmp_path / "lying.npz")
 
     # A zip that is not a decoder file at all.
     with zipfile.ZipFile(tmp_path / "other.npz", "w") as z:
         z.writestr("x.npy", b"garbage")
     with pytest.raises(MnerfError, match="decoder file"):
-        dec.load_decoder(tmp_path / "other.npz")
+        decoder_io.load_decoder(tmp_path / "other.npz")
 
 
 def test_interior_mean_skips_the_margin_and_falls_back_to_the_whole_mean() -> None:
@@ -254,26 +254,26 @@ def test_pool_margin_is_saved_fingerprinted_and_absent_in_older_files(
     tmp_path: Path, small_decoder: dict
 ) -> None:
     pooled = dec.with_pool_margin(small_decoder, 9)
-    assert dec.fingerprint(pooled) != dec.fingerprint(small_decoder)
-    meta = dec.save_decoder(tmp_path / "p.npz", pooled)
-    loaded = dec.load_decoder(tmp_path / "p.npz")
+    assert decoder_io.fingerprint(pooled) != decoder_io.fingerprint(small_decoder)
+    meta = decoder_io.save_decoder(tmp_path / "p.npz", pooled)
+    loaded = decoder_io.load_decoder(tmp_path / "p.npz")
     assert meta["pool_margin"] == 9 and dec.pool_margin(loaded.variables) == 9
-    assert loaded.fingerprint == dec.fingerprint(pooled)
+    assert loaded.fingerprint == decoder_io.fingerprint(pooled)
     # A file from before the setting existed (no pool_margin entry) pools everywhere, fingerprint unchanged.
-    dec.save_decoder(tmp_path / "old.npz", small_decoder)
+    decoder_io.save_decoder(tmp_path / "old.npz", small_decoder)
     with np.load(tmp_path / "old.npz", allow_pickle=False) as data:
         arrays = {name: np.array(data[name]) for name in data.files}
     meta = json.loads(arrays["__metadata__"].tobytes())
     del meta["pool_margin"]
     arrays["__metadata__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     np.savez(tmp_path / "old.npz", **arrays)
-    assert dec.pool_margin(dec.load_decoder(tmp_path / "old.npz").variables) == 0
+    assert dec.pool_margin(decoder_io.load_decoder(tmp_path / "old.npz").variables) == 0
     # The margin edited in the metadata: the fingerprint no longer matches.
     meta["pool_margin"] = 4
     arrays["__metadata__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     np.savez(tmp_path / "edited.npz", **arrays)
     with pytest.raises(MnerfError, match="fingerprint"):
-        dec.load_decoder(tmp_path / "edited.npz")
+        decoder_io.load_decoder(tmp_path / "edited.npz")
 
 
 def test_training_with_a_pool_margin_needs_large_enough_images(tmp_path: Path) -> None:
@@ -285,15 +285,15 @@ def test_training_with_a_pool_margin_needs_large_enough_images(tmp_path: Path) -
     assert dec.pool_margin(decoder_train.init_state(cfg)[0]["decoder"]) == 9
 
 
-@pytest.mark.parametrize("bits", dec.SHIPPED_BITS)
+@pytest.mark.parametrize("bits", decoder_io.SHIPPED_BITS)
 def test_shipped_decoder_reproduces_recorded_accuracy(bits: int) -> None:
-    if not dec.shipped_check_path(bits).is_file():
+    if not decoder_io.shipped_check_path(bits).is_file():
         pytest.skip(f"no shipped {bits}-bit decoder in this checkout (scripts/train_decoders.sh trains it)")
-    loaded = dec.load_shipped_decoder(bits)
+    loaded = decoder_io.load_shipped_decoder(bits)
     assert loaded.bits == bits and loaded.metadata["whitened"] is True
     recorded = loaded.metadata["eval"]
     assert set(recorded["heldout"]) == {"64px", "128px", "256px"}
-    with np.load(dec.shipped_check_path(bits), allow_pickle=False) as check:
+    with np.load(decoder_io.shipped_check_path(bits), allow_pickle=False) as check:
         images, message = check["images"], check["bits"]
     assert images.dtype == np.uint8 and message.shape == (images.shape[0], bits)
     logits = dec.decode_logits(loaded.variables, jnp.asarray(images, jnp.float32) / 255.0, loaded.wavelet)
@@ -310,7 +310,7 @@ def test_shipped_decoder_reproduces_recorded_accuracy(bits: int) -> None:
 
 def test_shipped_decoder_missing_bits() -> None:
     with pytest.raises(MnerfError, match="no shipped decoder for 32 bits"):
-        dec.shipped_decoder_path(32)
+        decoder_io.shipped_decoder_path(32)
 
 
 def test_short_training_run_learns(tmp_path: Path) -> None:
@@ -348,7 +348,7 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
     assert by_gradient["psnr_min"] >= 20.0 - 1e-3 and by_gradient["bit_acc_low"] is None
     assert 0.0 <= heldout["bit_acc_none"] <= 1.0 and heldout["bit_acc_low"] is None
     assert heldout["psnr_min"] >= 20.0 - 1e-3
-    loaded = dec.load_decoder(tmp_path / "decoder.npz", expect_bits=8)
+    loaded = decoder_io.load_decoder(tmp_path / "decoder.npz", expect_bits=8)
     assert loaded.metadata["whitened"] is True
     assert json.loads((tmp_path / "metrics.json").read_text())["fingerprint"] == loaded.fingerprint
     encoder, saved_cfg = hidden_encoder.load_encoder(tmp_path / "encoder.npz")

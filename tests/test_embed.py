@@ -314,10 +314,10 @@ def test_tiny_embed_writes_a_complete_watermarked_run(tiny: TinyRuns) -> None:
     progress = json.loads((wm / "embed.json").read_text())
     assert progress["steps_done"] == 80 and progress["phase"] == 2
     # The decoder was fine-tuned in phase 2, and keys.json names the decoder saved with the run.
-    from mnerf_jax import decoder
+    from mnerf_jax import decoder_io
 
-    saved = decoder.load_decoder(wm / "decoder.npz")
-    start = decoder.load_decoder(tiny.decoder)
+    saved = decoder_io.load_decoder(wm / "decoder.npz")
+    start = decoder_io.load_decoder(tiny.decoder)
     assert keys.decoder_fingerprint == saved.fingerprint != start.fingerprint
     loaded = runs.load_run(wm)
     assert loaded.kind == "multinerf" and loaded.step == 80 and loaded.extras["num_ids"] == 2

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mnerf_jax import cli, extract
+from mnerf_jax import cli, decoder_io, extract
 from mnerf_jax import decoder as dec
 from mnerf_jax.errors import MnerfError
 
@@ -70,10 +70,10 @@ def test_bad_image_shapes(variables: dict, shape: tuple, message: str) -> None:
 
 
 def test_cli_extract_on_pngs(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    if not dec.shipped_check_path(16).is_file():
+    if not decoder_io.shipped_check_path(16).is_file():
         pytest.skip("no shipped 16-bit decoder in this checkout (train it with scripts/train_decoders.sh)")
-    loaded = dec.load_shipped_decoder(16)
-    with np.load(dec.shipped_check_path(16), allow_pickle=False) as check:
+    loaded = decoder_io.load_shipped_decoder(16)
+    with np.load(decoder_io.shipped_check_path(16), allow_pickle=False) as check:
         images = check["images"][:3]
     paths = []
     for i, image in enumerate(images):
@@ -97,7 +97,7 @@ def test_cli_extract_on_pngs(tmp_path: Path, capsys: pytest.CaptureFixture) -> N
     )
     assert rows[3]["bits"] == rows[0]["bits"]  # opaque RGBA = RGB
 
-    assert cli.main(["extract", paths[1], "--decoder", str(dec.shipped_decoder_path(16))]) == 0
+    assert cli.main(["extract", paths[1], "--decoder", str(decoder_io.shipped_decoder_path(16))]) == 0
     out = capsys.readouterr().out.split()
     assert out == [paths[1], rows[1]["bits"]]
 
@@ -106,7 +106,8 @@ def test_cli_extract_on_pngs(tmp_path: Path, capsys: pytest.CaptureFixture) -> N
     assert cli.main(["extract", str(tmp_path / "grey.png")]) == 2
     assert "reads RGB (or RGBA) images" in capsys.readouterr().err
     assert (
-        cli.main(["extract", paths[0], "--bits", "48", "--decoder", str(dec.shipped_decoder_path(16))]) == 2
+        cli.main(["extract", paths[0], "--bits", "48", "--decoder", str(decoder_io.shipped_decoder_path(16))])
+        == 2
     )
     assert "48 bits are expected" in capsys.readouterr().err
     assert cli.main(["extract", str(tmp_path / "absent.png")]) == 2

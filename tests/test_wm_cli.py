@@ -166,13 +166,13 @@ def test_extract_errors_and_the_decoder_mode(tiny: TinyRuns, id_renders: dict[in
 
 
 def test_demo_finds_its_decoder(tiny: TinyRuns, tmp_path: Path, monkeypatch) -> None:
-    from mnerf_jax import decoder
+    from mnerf_jax import decoder_io
     from mnerf_jax.commands import demo
 
-    monkeypatch.setattr(decoder, "shipped_decoder_path", lambda bits: tmp_path / f"absent_l{bits}.npz")
+    monkeypatch.setattr(decoder_io, "shipped_decoder_path", lambda bits: tmp_path / f"absent_l{bits}.npz")
     path, note = demo.find_decoder(None)
-    assert str(path) == decoder.FRESH and "absent_l16.npz" in note and "--decoder FILE" in note
-    assert demo.find_decoder(Path(decoder.FRESH)) == (Path(decoder.FRESH), "")
+    assert str(path) == decoder_io.FRESH and "absent_l16.npz" in note and "--decoder FILE" in note
+    assert demo.find_decoder(Path(decoder_io.FRESH)) == (Path(decoder_io.FRESH), "")
     # A --decoder of the wrong length is refused before the demo writes anything.
     with pytest.raises(MnerfError, match="16 bits are expected"):
         demo.find_decoder(tiny.decoder)
@@ -185,13 +185,13 @@ def test_demo_finds_its_decoder(tiny: TinyRuns, tmp_path: Path, monkeypatch) -> 
 def test_demo_watermark_step_at_tiny_size(
     tiny: TinyRuns, tmp_path: Path, make_decoder, capsys, fresh: bool
 ) -> None:
-    from mnerf_jax import decoder
+    from mnerf_jax import decoder_io
     from mnerf_jax.commands import demo
 
     out = tmp_path / "demo"
     shutil.copytree(tiny.fit, out / "run")
     path, _ = demo.find_decoder(
-        Path(decoder.FRESH) if fresh else make_decoder(tmp_path / "dec16.npz", 16)
+        Path(decoder_io.FRESH) if fresh else make_decoder(tmp_path / "dec16.npz", 16)
     )
     # One phase-1 step: the step's plumbing, not the embedding's quality (tests/test_embed.py has that).
     overrides = (*tiny.embed_overrides, "watermark.phase1_steps=1", "watermark.phase2_steps=0")

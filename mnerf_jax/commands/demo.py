@@ -129,20 +129,20 @@ def find_decoder(path: Path | None) -> tuple[Path, str]:
 
     ``path`` (``--decoder``) is checked at once (MnerfError: missing, corrupt, not ``WM_BITS`` bits), so a
     bad file stops the demo before it writes anything; without it the shipped decoder is used if present,
-    else ``decoder.FRESH`` (a random-init decoder that phase 2 trains with the field) and a note saying so.
+    else ``decoder_io.FRESH`` (a random-init decoder that phase 2 trains with the field) and a note saying so.
     """
-    from mnerf_jax import decoder as decoder_lib
+    from mnerf_jax import decoder_io
 
     if path is not None:
-        if str(path) != decoder_lib.FRESH:
-            decoder_lib.load_decoder(path, expect_bits=WM_BITS)
+        if str(path) != decoder_io.FRESH:
+            decoder_io.load_decoder(path, expect_bits=WM_BITS)
         return path, ""
-    shipped = decoder_lib.shipped_decoder_path(WM_BITS)
+    shipped = decoder_io.shipped_decoder_path(WM_BITS)
     if shipped.is_file():
         return shipped, ""
     note = (f"no {WM_BITS}-bit decoder is shipped ({shipped} is missing): starting from a fresh decoder "
             "trained with the field in phase 2 (--decoder FILE to start from your own)")  # fmt: skip
-    return Path(decoder_lib.FRESH), note
+    return Path(decoder_io.FRESH), note
 
 
 def step_watermark(ctx: DemoContext) -> None:
