@@ -2,8 +2,9 @@
 
 After the fit, evaluation and renders, the watermark step embeds 4 IDs × 16 bits into the fitted run
 (``out/wm``), evaluates every ID on the test views and writes ``out/report`` (``report.demo_watermark``).
-It needs a 16-bit decoder, ``--decoder FILE`` or the shipped one; without one it is skipped with a line
-saying so.
+It starts from the shipped 16-bit decoder, or ``--decoder FILE``, or ``--decoder fresh`` (a random-init
+decoder that phase 2 trains with the field; also what it falls back to, with a line saying so, in a checkout
+without the shipped file).
 
 Each step is a function of a ``DemoContext``: it does one thing, records what it produced in
 ``ctx.rows`` (printed as a table at the end) and may leave objects for later steps in ``ctx.state``.
@@ -22,7 +23,7 @@ from typing import Any
 
 NAME = "demo"
 HELP = ("Fit the built-in procedural scene, evaluate it, render its test views and an orbit GIF, then embed "
-        "4 watermark IDs × 16 bits and write a report (when a 16-bit decoder is available).")  # fmt: skip
+        "4 watermark IDs × 16 bits and write a report.")  # fmt: skip
 
 DEMO_MARKER = "demo.json"
 DEMO_CONFIG = "procedural"
