@@ -4,13 +4,15 @@
 into buffers of static size, so each size is one compilation. ``SampleBudgets`` sizes them at the start of
 each phase from a probe of the rays (``estimate_density_count``), grows them when a step overflows (the step
 is redone, so no sample is dropped) and shrinks them at refit points, all on a coarse ladder of sizes.
+``BudgetPolicy`` does the same per call site for evaluation renders (``chunked``), from the counts alone.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import TYPE_CHECKING
+import math
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -24,12 +26,127 @@ if TYPE_CHECKING:
 Array = jax.Array
 
 
+def ladder_budget(needed: float, steps_per_octave: int = 4, minimum: int = 1024) -> int:
+    """Smallest budget ``>= needed`` of the form ``m 2^k``, ``steps_per_octave <= m < 2 steps_per_octave``.
+
+    A coarse ladder keeps the number of distinct static shapes (compilations) small while wasting at
+    most ``1 / steps_per_octave`` of the buffer. ``steps_per_octave=1`` gives powers of two.
+    """
+    needed = max(float(needed), float(minimum), 1.0)
+    k = max(math.floor(math.log2(needed / steps_per_octave)), 0)
+    while True:
+        for m in range(steps_per_octave, 2 * steps_per_octave):
+            if m * 2**k >= needed:
+                return int(m * 2**k)
+        k += 1
+
+
+@dataclasses.dataclass
+class _Site:
+    density: int
+    colour: int
+    seen_density: int = 0
+    seen_colour: int = 0
+    calls: int = 0
+    fresh: bool = True  # budgets not yet fitted to observed counts
+
+
+class BudgetPolicy:
+    """Static density/colour budgets per call site that grow on overflow and shrink when oversized.
+
+    Usage::
+
+        policy = BudgetPolicy()
+        while True:
+            db, cb = policy.budgets("train", n_rays, geometry.n_samples)
+            out = step(..., density_budget=db, colour_budget=cb)   # budgets are static args
+            if not policy.update("train", out, n_rays, geometry.n_samples):  # False: nothing dropped
+                break
+
+    A grown budget is ``ladder_budget(count * headroom)`` (one compilation per distinct size). When
+    the largest count of the last ``patience`` calls (the first 5 calls for fresh budgets) times
+    ``headroom`` is below ``shrink_below`` of a budget, it shrinks to fit, unless that frees fewer than
+    ``min_shrink`` slots (a compilation costs seconds, a few thousand slots save little a call, so small
+    renders keep their first budgets). Budgets never exceed
+    ``n_rays * n_samples``, which cannot overflow: a site starts there for density (and at
+    ``colour_fraction`` of it for colour), or, when only the sample count changed (upsampling), at its
+    previous budgets scaled by the ratio of sample counts.
+    """
+
+    def __init__(
+        self,
+        headroom: float = 1.2,
+        patience: int = 50,
+        shrink_below: float = 0.75,
+        steps_per_octave: int = 4,
+        minimum: int = 1024,
+        colour_fraction: float = 0.125,
+        min_shrink: int = 1 << 15,
+    ) -> None:
+        self.headroom = headroom
+        self.min_shrink = min_shrink
+        self.patience = patience
+        self.shrink_below = shrink_below
+        self.steps_per_octave = steps_per_octave
+        self.minimum = minimum
+        self.colour_fraction = colour_fraction
+        self._sites: dict[tuple[str, int], _Site] = {}
+        self._latest: dict[str, tuple[str, int]] = {}
+
+    def _ladder(self, needed: float, cap: int) -> int:
+        return min(ladder_budget(needed, self.steps_per_octave, self.minimum), cap)
+
+    def budgets(self, site: str, n_rays: int, n_samples: int) -> tuple[int, int]:
+        """``(density_budget, colour_budget)`` for a call rendering ``n_rays`` x ``n_samples``."""
+        cap = n_rays * n_samples
+        state = self._sites.get((site, cap))
+        if state is None:
+            previous = self._sites.get(self._latest.get(site, ("", -1)))
+            if previous is None:
+                state = _Site(density=cap, colour=self._ladder(cap * self.colour_fraction, cap))
+            else:
+                ratio = cap / self._latest[site][1]
+                state = _Site(
+                    density=self._ladder(previous.density * ratio, cap),
+                    colour=self._ladder(previous.colour * ratio, cap),
+                )
+            self._sites[(site, cap)] = state
+        self._latest[site] = (site, cap)
+        return state.density, state.colour
+
+    def update(self, site: str, out: dict[str, Any], n_rays: int, n_samples: int) -> bool:
+        """Record a call's sample counts; True when it overflowed (re-run it with the new budgets)."""
+        cap = n_rays * n_samples
+        state = self._sites[(site, cap)]
+        d_count, c_count = int(out["density_count"]), int(out["colour_count"])
+        overflow = d_count > state.density or c_count > state.colour
+        if d_count > state.density:
+            state.density = self._ladder(d_count * self.headroom, cap)
+        if c_count > state.colour:
+            state.colour = self._ladder(c_count * self.headroom, cap)
+        if overflow:
+            state.seen_density = state.seen_colour = state.calls = 0
+            return True
+        state.seen_density = max(state.seen_density, d_count)
+        state.seen_colour = max(state.seen_colour, c_count)
+        state.calls += 1
+        if state.calls >= (min(5, self.patience) if state.fresh else self.patience):
+            for name in ("density", "colour"):
+                seen, current = getattr(state, f"seen_{name}") * self.headroom, getattr(state, name)
+                fitted = self._ladder(seen, cap)
+                if seen < self.shrink_below * current and current - fitted >= self.min_shrink:
+                    setattr(state, name, fitted)
+            state.seen_density = state.seen_colour = state.calls = 0
+            state.fresh = False
+        return False
+
+
 def ladder(needed: float, minimum: int = 1024) -> int:
     """Smallest size ``>= needed`` on a ladder of 2 sizes per octave (2^k and 1.5 * 2^k).
 
     Few distinct sizes keep recompilations rare; at most a third of a buffer is slack.
     """
-    return render.ladder_budget(needed, steps_per_octave=2, minimum=minimum)
+    return ladder_budget(needed, steps_per_octave=2, minimum=minimum)
 
 
 @dataclasses.dataclass

@@ -128,7 +128,7 @@ def make_finetune_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation
         enc = {"params": enc_params, "batch_stats": state["encoder"]["batch_stats"]}
         encoded, enc_stats = encode(enc, images, bits, cfg, train=True)
         k_apply, k_aug, k_crop = jax.random.split(key, 3)
-        window = random_windows(k_crop, encoded, cfg.size)
+        window = random_windows(k_crop, encoded, encoded.shape[1] - cfg.crop_margin)  # sides take turns
         # Half the steps see the clean encoded image: the no-attack accuracy matters as much as robustness.
         seen = jnp.where(jax.random.uniform(k_apply) < 0.5, augment_fn(k_aug, window), window)
         logits = dec.apply_ll2(state["decoder"], dwt.ll2(seen, cfg.wavelet))

@@ -65,7 +65,7 @@ from mnerf_jax.hidden_encoder import encode_batch, init_encoder
 ARRAY_KEYS = ("encoder", "decoder", "opt", "opt_ft", "opt_inf")
 MAX_SKIPPED = 20  # consecutive steps with non-finite gradients before a run is declared diverged
 # Trajectory fields added after checkpoints were first written, with the value a checkpoint without them used.
-ADDED_FIELDS = {"decoder_init": "random", "pool_margin": 0}
+ADDED_FIELDS = {"decoder_init": "random", "pool_margin": 0, "finetune_sizes": [], "decoder_from": ""}
 # Config fields that only change the final evaluation: a finished run can be re-evaluated with --resume.
 EVAL_FIELDS = ("eval_images", "eval_sizes", "eval_augment_draws", "eval_informed_iterations", "check_images")
 
@@ -83,6 +83,11 @@ class DecoderTrainConfig:
     informed_start_psnr: float = 28.0  # curriculum of the informed steps (reaches target_psnr like the joint)
     steps: int = 0  # joint encoder+decoder steps, after the informed ones
     finetune_steps: int = 5000  # encoder-only steps through the whitened decoder (still gaining at 5,000)
+    # Image sides of the encoder steps, in turn (each batch about as many pixels as ``batch`` × ``size``²);
+    # empty: ``size`` only. An encoder trained at one side writes worse at the others.
+    finetune_sizes: tuple[int, ...] = ()
+    # A whitened decoder file to train an encoder for (stages 1-3 skipped; the decoder is not changed).
+    decoder_from: str = ""
     size: int = 64  # side in pixels of the images the decoder sees in training (LL2 side = size / 4)
     crop_margin: int = 0  # images are encoded at size + margin; the decoder sees a random size × size window
     batch: int = 16
@@ -138,10 +143,21 @@ def informed_psnr(cfg: DecoderTrainConfig, step: int) -> float:
     return cfg.informed_start_psnr + (cfg.target_psnr - cfg.informed_start_psnr) * step / span
 
 
-def informed_batch(cfg: DecoderTrainConfig, step: int) -> tuple[int, int]:
-    """``(side, batch)`` of an informed step: the sides take turns, each batch holds about as many pixels."""
-    side = cfg.informed_sizes[step % len(cfg.informed_sizes)]
+def side_and_batch(cfg: DecoderTrainConfig, sides: tuple[int, ...], step: int) -> tuple[int, int]:
+    """``(side, batch)`` of a step whose image sides take turns: each batch holds about as many pixels as
+    ``cfg.batch`` images of ``cfg.size``²."""
+    side = sides[step % len(sides)]
     return side, max(1, round(cfg.batch * (cfg.size / side) ** 2))
+
+
+def informed_batch(cfg: DecoderTrainConfig, step: int) -> tuple[int, int]:
+    """``(side, batch)`` of an informed step."""
+    return side_and_batch(cfg, cfg.informed_sizes, step)
+
+
+def finetune_sides(cfg: DecoderTrainConfig) -> tuple[int, ...]:
+    """The image sides of the encoder steps (``finetune_sizes``, or ``size`` alone)."""
+    return tuple(cfg.finetune_sizes) or (cfg.size,)
 
 
 def psnr_schedule(cfg: DecoderTrainConfig, step: int) -> float:
@@ -172,6 +188,23 @@ def make_optimizers(
     return make(cosine(cfg.steps)), make(finetune), make(cosine(cfg.informed_steps))
 
 
+def decoder_from_file(cfg: DecoderTrainConfig) -> dict[str, Any]:
+    """The whitened decoder of ``cfg.decoder_from``, checked against the run's bits, wavelet and pool."""
+    loaded = decoder_io.load_decoder(cfg.decoder_from, expect_bits=cfg.bits)
+    if not loaded.metadata.get("whitened", False):
+        raise MnerfError(f"--decoder-from {cfg.decoder_from}: the decoder is not whitened")
+    if loaded.wavelet != cfg.wavelet:
+        raise MnerfError(
+            f"--decoder-from {cfg.decoder_from} reads the {loaded.wavelet} LL2, the run uses {cfg.wavelet}"
+        )
+    if dec.pool_margin(loaded.variables) != cfg.pool_margin:
+        raise MnerfError(
+            f"--decoder-from {cfg.decoder_from} pools with margin {dec.pool_margin(loaded.variables)}; "
+            f"pass --pool-margin {dec.pool_margin(loaded.variables)}"
+        )
+    return dict(jax.tree.map(jnp.asarray, loaded.variables))
+
+
 def init_state(cfg: DecoderTrainConfig) -> tuple[dict[str, Any], tuple]:
     k_enc, k_dec = jax.random.split(jax.random.PRNGKey(cfg.seed))
     encoder = init_encoder(k_enc, cfg.bits, cfg.encoder_channels, cfg.encoder_depth)
@@ -179,10 +212,12 @@ def init_state(cfg: DecoderTrainConfig) -> tuple[dict[str, Any], tuple]:
     if cfg.decoder_init == "filterbank":
         decoder = dec.filterbank_init(decoder)
     decoder = dec.with_pool_margin(decoder, cfg.pool_margin)
+    if cfg.decoder_from:
+        decoder = decoder_from_file(cfg)
     tx_joint, tx_ft, tx_inf = make_optimizers(cfg)
     state = {
         "step": 0,
-        "whitened": False,
+        "whitened": bool(cfg.decoder_from),
         "elapsed_s": 0.0,
         "whitening_report": {"bit_acc_none_raw_decoder": 0.0, "bit_acc_none_whitened_before_finetune": 0.0},
         "encoder": encoder,
@@ -244,19 +279,24 @@ def _batches(
     cfg: DecoderTrainConfig, source: ImageSource, start: int, stop: int
 ) -> Iterator[tuple[int, str, np.ndarray, np.ndarray]]:
     """``(step, stage, images, bits)`` for steps ``start..stop-1``; stage is informed, joint or finetune."""
-    informed_sources: dict[int, ImageSource] = {}
+    sources: dict[int, ImageSource] = {cfg.size + cfg.crop_margin: source}
+
+    def sample(rng: np.random.Generator, side: int, batch: int) -> np.ndarray:
+        if side not in sources:
+            sources[side] = ImageSource(source.pool, side, cfg.procedural_fraction)
+        return sources[side].sample(rng, batch)
+
     for step in range(start, stop):
         rng = np.random.default_rng([cfg.seed, step])
         if step < cfg.informed_steps:
             side, batch = informed_batch(cfg, step)
-            if side not in informed_sources:
-                side_encoded = side + cfg.informed_margin
-                informed_sources[side] = ImageSource(source.pool, side_encoded, cfg.procedural_fraction)
-            images, stage = informed_sources[side].sample(rng, batch), "informed"
-        else:
-            batch = cfg.batch
-            stage = "joint" if step < cfg.informed_steps + cfg.steps else "finetune"
+            images, stage = sample(rng, side + cfg.informed_margin, batch), "informed"
+        elif step < cfg.informed_steps + cfg.steps:
+            batch, stage = cfg.batch, "joint"
             images = source.sample(rng, batch)
+        else:
+            side, batch = side_and_batch(cfg, finetune_sides(cfg), step - cfg.informed_steps - cfg.steps)
+            images, stage = sample(rng, side + cfg.crop_margin, batch), "finetune"
         bits = rng.integers(0, 2, size=(batch, cfg.bits)).astype(np.float32)
         yield step, stage, images, bits
 
@@ -289,7 +329,12 @@ def train_decoder(
         raise MnerfError(f"--decoder-init must be one of {choices}, got {cfg.decoder_init!r}")
     if cfg.size % 4 or cfg.size < 16:
         raise MnerfError(f"--size must be a multiple of 4 and at least 16, got {cfg.size}")
+    if cfg.decoder_from and (cfg.informed_steps or cfg.steps):
+        raise MnerfError(
+            "--decoder-from trains an encoder for a finished decoder: pass --informed-steps 0 --steps 0"
+        )
     smallest = min(cfg.size, *cfg.informed_sizes) if cfg.informed_steps else cfg.size
+    smallest = min(smallest, *finetune_sides(cfg))
     if cfg.pool_margin < 0 or (cfg.pool_margin and smallest // 4 <= 2 * cfg.pool_margin):
         raise MnerfError(
             f"--pool-margin {cfg.pool_margin} leaves no positions to pool in {smallest}-px training images "
@@ -437,6 +482,9 @@ def finish(cfg: DecoderTrainConfig, state: dict[str, Any], out: Path, wall: floa
         "machine": _machine(),
         "steps": cfg.steps + cfg.finetune_steps,
     }
+    if cfg.decoder_from:  # the decoder is the file's: keep its record, add the encoder's
+        original = decoder_io.load_decoder(cfg.decoder_from, expect_bits=cfg.bits).metadata
+        training = {**original.get("training", {}), "encoder_refit": training}
     evaluation = {
         "heldout": heldout,
         "check_batch_bit_acc": check_acc,

@@ -10,7 +10,7 @@ A run directory holds::
 
 ``load_run(RUN)`` dispatches on ``run.json``'s ``kind`` to a loader registered with
 ``register_run_kind``; the TensoRF loader is built in, and the module that registers any other kind
-(``LOADER_MODULES``, e.g. ``mnerf_jax.embed`` for watermarked runs) is imported on first use, so
+(``LOADER_MODULES``, e.g. ``mnerf_jax.wm_run`` for watermarked runs) is imported on first use, so
 ``load_run`` works from every entry point without ``run`` importing those modules up front. A loader
 returns a ``LoadedRun``: config, params, geometry, field functions and a conditioning pytree, which is all
 rendering needs.
@@ -41,7 +41,7 @@ RUN_FORMAT_VERSION = 1
 TENSORF_KIND = "tensorf"
 WATERMARK_KIND = "multinerf"
 # Modules that register a loader for a kind when imported (imported lazily: they import this module).
-LOADER_MODULES: dict[str, str] = {WATERMARK_KIND: "mnerf_jax.embed"}
+LOADER_MODULES: dict[str, str] = {WATERMARK_KIND: "mnerf_jax.wm_run"}
 
 
 class RunError(MnerfError):
@@ -252,7 +252,7 @@ def render_views(
     on_view: Callable[[int, np.ndarray], None] | None = None,
 ) -> list[np.ndarray]:
     """Render cameras ``indices`` (default all) of ``cameras`` -> list of ``[H, W, 3]`` float32 in [0, 1]."""
-    from mnerf_jax import render
+    from mnerf_jax import budgets, chunked
     from mnerf_jax.data import camera_rays
 
     indices = range(len(cameras)) if indices is None else indices
@@ -261,11 +261,11 @@ def render_views(
     pixels = cameras.width * cameras.height
     chunk = math.ceil(pixels / math.ceil(pixels / max(chunk, 1)))
     # Budgets settle after a few chunks; a short patience lets them shrink early.
-    policy = render.BudgetPolicy(patience=4)
+    policy = budgets.BudgetPolicy(patience=4)
     images = []
     for i in indices:
         o, d = camera_rays(cameras, int(i))
-        out = render.render_image(run.field_fns, run.params, run.cond, o, d, run.geometry, cameras.height,
+        out = chunked.render_image(run.field_fns, run.params, run.cond, o, d, run.geometry, cameras.height,
                                   cameras.width, chunk=chunk, policy=policy)  # fmt: skip
         rgb = out["rgb"].astype(np.float32)
         images.append(rgb)

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from mnerf_jax import field, grids, render
+from mnerf_jax import alpha_mask, field, grids, render
 from mnerf_jax.budgets import SampleBudgets, estimate_density_count, refit_due
 from mnerf_jax.checkpoint import CheckpointStore, check_compatible, config_fingerprint
 from mnerf_jax.config import Config
@@ -302,7 +302,7 @@ def training_rays(scene: Scene, geometry: render.Geometry) -> RaySet:
     """All rays of the train split; for non-NDC scenes those missing the aabb are dropped."""
     origins, directions, rgb = all_rays("train", scene)
     if not scene.ndc:
-        keep = render.filter_rays(geometry, origins, directions, chunk=1 << 20, bbox_only=True)
+        keep = alpha_mask.filter_rays(geometry, origins, directions, chunk=1 << 20, bbox_only=True)
         if not keep.all():
             origins, directions, rgb = origins[keep], directions[keep], rgb[keep]
     return RaySet(np.ascontiguousarray(origins), np.ascontiguousarray(directions), np.ascontiguousarray(rgb))
@@ -368,7 +368,7 @@ def update_alpha_mask(
     shrinks where it also upsamples, which resets Adam anyway). An all-empty mask is not applied.
     """
     geometry = state.geometry
-    mask = render.compute_alpha_mask(fns, state.params, geometry, mask_resolution,
+    mask = alpha_mask.compute_alpha_mask(fns, state.params, geometry, mask_resolution,
                                      threshold=config.render.alpha_mask_threshold)  # fmt: skip
     if not mask.any():
         # Nothing is dense enough yet: an empty mask would leave no sample to train on.
@@ -376,9 +376,9 @@ def update_alpha_mask(
     old_aabb = np.asarray(geometry.aabb)
     params, opt_state = state.params, state.opt_state
     if shrink:
-        new_box = render.shrink_box_from_mask(mask, old_aabb)
-        params, aligned = render.shrink_field(params, old_aabb, new_box)
-        opt_state, _ = render.shrink_field(opt_state, old_aabb, new_box)
+        new_box = alpha_mask.shrink_box_from_mask(mask, old_aabb)
+        params, aligned = alpha_mask.shrink_field(params, old_aabb, new_box)
+        opt_state, _ = alpha_mask.shrink_field(opt_state, old_aabb, new_box)
         geometry = geometry_for(config, aligned, grids.vm_resolution(params["density"]),
                                 near=float(geometry.near), far=float(geometry.far), ndc=geometry.ndc,
                                 white_bg=geometry.white_bg)  # fmt: skip
@@ -469,11 +469,11 @@ def state_from_checkpoint(
     """``(TrainState, ray keep-mask or None)`` from a restored checkpoint tree and its meta."""
     g = tree["geometry"]
     gm = meta["geometry"]
-    alpha_mask = np.asarray(g["alpha_mask"], bool)
+    mask = np.asarray(g["alpha_mask"], bool)
     f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
     geometry = render.Geometry(
-        aabb=f32(g["aabb"]), alpha_mask=jnp.asarray(alpha_mask),
-        alpha_cells=jnp.asarray(render.mask_cells(alpha_mask)), mask_aabb=f32(g["mask_aabb"]),
+        aabb=f32(g["aabb"]), alpha_mask=jnp.asarray(mask),
+        alpha_cells=jnp.asarray(render.mask_cells(mask)), mask_aabb=f32(g["mask_aabb"]),
         step_size=f32(g["step_size"]), near=f32(g["near"]), far=f32(g["far"]),
         distance_scale=f32(g["distance_scale"]), n_samples=int(gm["n_samples"]), ndc=bool(gm["ndc"]),
         white_bg=bool(gm["white_bg"]),
@@ -661,7 +661,7 @@ class _Trainer:
     def filter_rays(self, start: int) -> None:
         """Keep the training rays that cross an occupied alpha-mask cell (TensoRF's filtering_rays)."""
         g = self.state.geometry
-        keep = render.filter_rays(g, self.base_rays.origins, self.base_rays.directions, chunk=1 << 16,
+        keep = alpha_mask.filter_rays(g, self.base_rays.origins, self.base_rays.directions, chunk=1 << 16,
                                   n_samples=min(256, g.n_samples))  # fmt: skip
         if not keep.any():
             keep[:] = True  # nothing occupied: keep training on every ray

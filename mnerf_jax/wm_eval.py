@@ -215,11 +215,11 @@ def evaluate_watermarked_run(
     With ``keep_renders`` the returned dict (not the file) also holds ``_renders`` ``{ID: [V, H, W, 3]}``,
     ``_clean`` and ``_gt``.
     """
-    from mnerf_jax import embed
     from mnerf_jax import run as runs
+    from mnerf_jax import wm_run
 
     run_dir = Path(run_dir)
-    run = embed.load_watermarked_run(run_dir)
+    run = wm_run.load_watermarked_run(run_dir)
     keys = run.extras["keys"]
     decoder = run.extras["decoder"]
     thr = float(run.config.watermark.id_threshold if threshold is None else threshold)
@@ -241,7 +241,7 @@ def evaluate_watermarked_run(
         if source is not None:
             clean = np.stack(runs.render_views(source, scene_split.cameras, indices, on_view=tick))
         renders = {
-            n: np.stack(embed.render_with_id(run, n, scene_split.cameras, indices, on_view=tick))
+            n: np.stack(wm_run.render_with_id(run, n, scene_split.cameras, indices, on_view=tick))
             for n in range(n_ids)
         }
     finally:
@@ -354,10 +354,10 @@ def identify_images(
 
     Only the run's keys, decoder and config are read (not its field checkpoint).
     """
-    from mnerf_jax import embed, extract
+    from mnerf_jax import extract, wm_run
     from mnerf_jax import run as runs
 
-    keys, decoder = embed.load_keys_and_decoder(run_dir)
+    keys, decoder = wm_run.load_keys_and_decoder(run_dir)
     if threshold is None:
         threshold = runs.read_run_config(run_dir).watermark.id_threshold
     thr = float(threshold)

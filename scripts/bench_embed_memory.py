@@ -37,8 +37,8 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
+    from mnerf_jax import budgets, deferred, embed, watermark
     from mnerf_jax import decoder as decoder_lib
-    from mnerf_jax import deferred, embed, render, watermark
     from mnerf_jax.data.rays import camera_rays
 
     source = embed.load_source(run)
@@ -66,7 +66,7 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
         "message": jnp.asarray(np.arange(16) % 2, jnp.float32), "id": jnp.asarray(1, jnp.int32),
     }  # fmt: skip
     geometry = source.geometry
-    policy = render.BudgetPolicy()
+    policy = budgets.BudgetPolicy()
     site, n_rays, n_samples = "bench", layout.size**2, geometry.n_samples
 
     def spec() -> embed.StepSpec:

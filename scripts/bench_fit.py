@@ -33,7 +33,7 @@ reexec_with_huge_pages([sys.executable, str(Path(__file__).resolve()), *sys.argv
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mnerf_jax import render, train  # noqa: E402
+from mnerf_jax import budgets, chunked, train  # noqa: E402
 from mnerf_jax.config import load_config  # noqa: E402
 from mnerf_jax.data import camera_rays, load_scene  # noqa: E402
 
@@ -124,11 +124,12 @@ def main(argv: list[str] | None = None) -> int:
     o, d = o[grid.reshape(-1)], d[grid.reshape(-1)]
     hh, ww = grid.shape
     state = result.state
-    policy = render.BudgetPolicy(patience=2)
+    policy = budgets.BudgetPolicy(patience=2)
 
     def render_r0() -> float:
         t0 = time.perf_counter()
-        out = render.render_image(result.fns, state.params, None, o, d, state.geometry, hh, ww, policy=policy)
+        geometry = state.geometry
+        out = chunked.render_image(result.fns, state.params, None, o, d, geometry, hh, ww, policy=policy)
         jax.block_until_ready(out["rgb"])
         return time.perf_counter() - t0
 

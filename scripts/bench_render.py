@@ -39,7 +39,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.scipy.ndimage import map_coordinates  # noqa: E402
 
-from mnerf_jax import field, grids, render  # noqa: E402
+from mnerf_jax import alpha_mask, budgets, field, grids, render  # noqa: E402
 from mnerf_jax.config import ModelConfig  # noqa: E402
 
 
@@ -149,7 +149,7 @@ def bench_render(repeats: int, options: dict, res: int = 128, rays: int = 4096) 
     aabb = np.array([[-1.5] * 3, [1.5] * 3], np.float32)
     geo = render.make_geometry(aabb, (res, res, res), distance_scale=cfg.distance_scale)
     t0 = time.perf_counter()
-    mask = render.compute_alpha_mask(fns, params, geo, (res, res, res))
+    mask = alpha_mask.compute_alpha_mask(fns, params, geo, (res, res, res))
     mask_s = time.perf_counter() - t0
     masked = render.with_alpha_mask(geo, mask, geo.aabb)
     rays_o, rays_d = orbit_rays(rays, 0)
@@ -193,11 +193,11 @@ def bench_render(repeats: int, options: dict, res: int = 128, rays: int = 4096) 
     for suffix, g in (("", geo), ("_mask", masked)):
         c = reference[suffix]
         cases["dense" + suffix] = (g, None, None, suffix)
-        budgets = (
-            render.ladder_budget(int(c["density_count"]) * 1.2),
-            render.ladder_budget(int(c["colour_count"]) * 1.2),
+        sizes = (
+            budgets.ladder_budget(int(c["density_count"]) * 1.2),
+            budgets.ladder_budget(int(c["colour_count"]) * 1.2),
         )
-        cases["compact" + suffix] = (g, *budgets, suffix)
+        cases["compact" + suffix] = (g, *sizes, suffix)
     for name, (g, db, cb, suffix) in cases.items():
         t_train = best_time(
             lambda g=g, db=db, cb=cb: train_step(params, g, rays_o, rays_d, target, key, db, cb), repeats

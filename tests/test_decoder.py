@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import zipfile
 from pathlib import Path
@@ -363,6 +364,22 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
     other = decoder_train.DecoderTrainConfig(**{**cfg.to_dict(), "batch": 8})
     with pytest.raises(MnerfError, match="other settings"):
         decoder_train.train_decoder(other, tmp_path, resume=True, progress=False)
+
+    # An encoder trained anew for the finished decoder, at two sides in turn: the decoder is copied as it is
+    # (same fingerprint, its training record kept) and the figures are re-measured with the new encoder.
+    refit = dataclasses.replace(
+        cfg, informed_steps=0, steps=0, finetune_steps=4, finetune_sizes=(32, 48), eval_sizes=(32, 48),
+        decoder_from=str(tmp_path / "decoder.npz"),
+    )  # fmt: skip
+    with pytest.raises(MnerfError, match="--informed-steps 0 --steps 0"):
+        decoder_train.train_decoder(dataclasses.replace(refit, steps=2), tmp_path / "bad", progress=False)
+    again_metrics = decoder_train.train_decoder(refit, tmp_path / "refit", progress=False)
+    assert again_metrics["fingerprint"] == loaded.fingerprint
+    assert set(again_metrics["heldout"]) == {"32px", "48px"}
+    record = decoder_io.load_decoder(tmp_path / "refit" / "decoder.npz").metadata["training"]
+    assert record["config"]["informed_steps"] == 60
+    assert record["encoder_refit"]["config"]["finetune_steps"] == 4
+    assert [decoder_train.side_and_batch(refit, (32, 48), i)[0] for i in range(3)] == [32, 48, 32]
 
 
 def test_informed_step_with_a_margin_reads_windows_and_updates_the_decoder() -> None:

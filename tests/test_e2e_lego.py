@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mnerf_jax import metrics, render, train
+from mnerf_jax import chunked, metrics, render, train
 from mnerf_jax.config import load_config
 from mnerf_jax.data import camera_rays, load_scene
 
@@ -22,7 +22,7 @@ def _test_psnr(fns, state, split) -> float:
     preds = []
     for i in TEST_VIEWS:
         o, d = camera_rays(split.cameras, i)
-        out = render.render_image(fns, state.params, None, o, d, state.geometry, split.cameras.height,
+        out = chunked.render_image(fns, state.params, None, o, d, state.geometry, split.cameras.height,
                                   split.cameras.width, chunk=2500)  # fmt: skip
         preds.append(out["rgb"])
     return float(np.mean(np.asarray(metrics.psnr(np.stack(preds), split.images[list(TEST_VIEWS)]))))

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from mnerf_jax import deferred as D
-from mnerf_jax import dwt
+from mnerf_jax import dwt, wm_run
 from mnerf_jax import embed as E
 from mnerf_jax.errors import MnerfError
 
@@ -326,17 +326,17 @@ def test_tiny_embed_writes_a_complete_watermarked_run(tiny: TinyRuns) -> None:
 def test_loaded_run_renders_each_id_differently(tiny: TinyRuns) -> None:
     from mnerf_jax import run as runs
 
-    loaded = E.load_watermarked_run(tiny.wm)
+    loaded = wm_run.load_watermarked_run(tiny.wm)
     split = loaded.load_scene(splits=("test",)).split("test")
-    a, a2, b = (E.render_with_id(loaded, i, split.cameras, [0])[0] for i in (0, 0, 1))
+    a, a2, b = (wm_run.render_with_id(loaded, i, split.cameras, [0])[0] for i in (0, 0, 1))
     np.testing.assert_array_equal(a, a2)
     assert np.abs(a - b).max() > 1e-2
-    assert E.with_id(loaded, 1).extras["id"] == 1
+    assert wm_run.with_id(loaded, 1).extras["id"] == 1
     with pytest.raises(MnerfError, match="outside"):
-        E.with_id(loaded, 2)
+        wm_run.with_id(loaded, 2)
     plain = runs.load_run(tiny.fit)
     with pytest.raises(MnerfError, match="not a watermarked run"):
-        E.with_id(plain, 0)
+        wm_run.with_id(plain, 0)
 
 
 def test_resume_continues_exactly(tiny: TinyRuns) -> None:
@@ -349,8 +349,8 @@ def test_resume_continues_exactly(tiny: TinyRuns) -> None:
     resumed = E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=5, resume=True, **args)
     E.embed(tiny.fit, root / "r_once", 2, 8, stop_at=5, **args)
     assert resumed.steps == 5
-    a = E.load_watermarked_run(root / "r_split")
-    b = E.load_watermarked_run(root / "r_once")
+    a = wm_run.load_watermarked_run(root / "r_split")
+    b = wm_run.load_watermarked_run(root / "r_once")
     assert a.step == b.step == 5
     for x, y in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params), strict=True):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)

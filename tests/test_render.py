@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import field, grids, render
+from mnerf_jax import alpha_mask, budgets, chunked, field, grids, render
 from mnerf_jax.config import ModelConfig
 
 SETTINGS = settings(max_examples=10, deadline=None)
@@ -322,9 +322,9 @@ def test_budget_policy_never_drops_samples():
     rays_o, rays_d = camera_rays(64, spread=2.0)  # many rays cross little of the box
     dense = _render(SPHERE, params, geo, rays_o, rays_d, None, None)
     # The first colour budget (8) is too small: the first call overflows and is re-run.
-    policy = render.BudgetPolicy(minimum=8, colour_fraction=0.0, patience=2, min_shrink=0)
+    policy = budgets.BudgetPolicy(minimum=8, colour_fraction=0.0, patience=2, min_shrink=0)
     for _ in range(4):
-        out = render.render_rays_exact(
+        out = chunked.render_rays_exact(
             SPHERE, params, None, rays_o, rays_d, geo, None, train=False, policy=policy, site="t"
         )
         np.testing.assert_allclose(np.asarray(out["rgb"]), np.asarray(dense["rgb"]), atol=1e-5)
@@ -336,8 +336,8 @@ def test_budget_policy_never_drops_samples():
 
 
 def test_budget_policy_grows_shrinks_and_rescales():
-    policy = render.BudgetPolicy(minimum=8, patience=3, colour_fraction=0.1, min_shrink=0)
-    ladder = lambda x: render.ladder_budget(x, 4, 8)
+    policy = budgets.BudgetPolicy(minimum=8, patience=3, colour_fraction=0.1, min_shrink=0)
+    ladder = lambda x: budgets.ladder_budget(x, 4, 8)
     assert policy.budgets("s", 10, 100) == (1000, ladder(100))
     counts = {"density_count": 300, "colour_count": 200}
     assert policy.update("s", counts, 10, 100)  # colour overflowed: re-run
@@ -352,14 +352,15 @@ def test_budget_policy_grows_shrinks_and_rescales():
 
 
 def test_budget_policy_keeps_budgets_when_a_shrink_frees_little():
-    policy = render.BudgetPolicy(minimum=8, patience=2, colour_fraction=1.0, min_shrink=500)
+    policy = budgets.BudgetPolicy(minimum=8, patience=2, colour_fraction=1.0, min_shrink=500)
     counts = {"density_count": 300, "colour_count": 200}
     assert policy.budgets("s", 10, 100) == (1000, 1000)  # colour starts as large as density: no overflow
     for _ in range(2):
         assert not policy.update("s", counts, 10, 100)
     # Density 1000 -> 384 frees 616 slots: worth a compilation; colour 1000 -> 240 as well.
-    assert policy.budgets("s", 10, 100) == (render.ladder_budget(360, 4, 8), render.ladder_budget(240, 4, 8))
-    small = render.BudgetPolicy(minimum=8, patience=2, colour_fraction=1.0, min_shrink=800)
+    expected = (budgets.ladder_budget(360, 4, 8), budgets.ladder_budget(240, 4, 8))
+    assert policy.budgets("s", 10, 100) == expected
+    small = budgets.BudgetPolicy(minimum=8, patience=2, colour_fraction=1.0, min_shrink=800)
     small.budgets("s", 10, 100)
     for _ in range(2):
         assert not small.update("s", counts, 10, 100)
@@ -367,11 +368,11 @@ def test_budget_policy_keeps_budgets_when_a_shrink_frees_little():
 
 
 def test_ladder_budget():
-    assert render.ladder_budget(1000, 4, 1) == 1024
-    assert render.ladder_budget(1025, 4, 1) == 1280
-    assert render.ladder_budget(5, 1, 1) == 8
+    assert budgets.ladder_budget(1000, 4, 1) == 1024
+    assert budgets.ladder_budget(1025, 4, 1) == 1280
+    assert budgets.ladder_budget(5, 1, 1) == 8
     for needed in (1, 17, 999, 123457):
-        b = render.ladder_budget(needed, 4, 1)
+        b = budgets.ladder_budget(needed, 4, 1)
         assert needed <= b <= 1.25 * needed + 4
 
 
@@ -396,7 +397,7 @@ def test_backgrounds():
 def test_alpha_mask_skips_empty_space_and_keeps_the_image():
     geo = _slab_geometry(n_samples=160)
     params = sphere_params(radius=0.4)
-    mask = render.compute_alpha_mask(SPHERE, params, geo, (24, 24, 24))
+    mask = alpha_mask.compute_alpha_mask(SPHERE, params, geo, (24, 24, 24))
     nodes = np.stack(np.meshgrid(*[np.linspace(-1, 1, 24)] * 3, indexing="ij"), -1)
     r = np.linalg.norm(nodes, axis=-1)
     assert np.all(mask[r < 0.38]) and not np.any(mask[r > 0.4 + 2 * np.sqrt(3) * 2 / 23])
@@ -410,20 +411,20 @@ def test_alpha_mask_skips_empty_space_and_keeps_the_image():
                       int(after["colour_count"]))  # fmt: skip
     np.testing.assert_allclose(np.asarray(compact["rgb"]), np.asarray(after["rgb"]), atol=1e-5)
 
-    box = render.shrink_box_from_mask(mask, geo.aabb)
+    box = alpha_mask.shrink_box_from_mask(mask, geo.aabb)
     occupied = nodes[mask] * 1.5
     np.testing.assert_allclose(box, np.stack([occupied.min(0), occupied.max(0)]), atol=1e-5)
     assert np.all(box[0] <= -0.4 * 1.5) and np.all(box[1] >= 0.4 * 1.5)
 
-    keep = render.filter_rays(masked, rays_o, rays_d, chunk=40)
+    keep = alpha_mask.filter_rays(masked, rays_o, rays_d, chunk=40)
     hits = np.asarray(before["acc"]) > 1e-3
     assert np.all(keep[hits]) and keep.shape == (64,)
     far_o = jnp.asarray([[0.0, 1.2, 4.0], [0.0, 0.0, 4.0]])
     down = jnp.asarray([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
-    np.testing.assert_array_equal(render.filter_rays(masked, far_o, down), [False, True])
-    np.testing.assert_array_equal(render.filter_rays(masked, far_o, down, bbox_only=True), [True, True])
+    np.testing.assert_array_equal(alpha_mask.filter_rays(masked, far_o, down), [False, True])
+    np.testing.assert_array_equal(alpha_mask.filter_rays(masked, far_o, down, bbox_only=True), [True, True])
     miss = jnp.asarray([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
-    np.testing.assert_array_equal(render.filter_rays(masked, far_o, miss, bbox_only=True), [False, False])
+    np.testing.assert_array_equal(alpha_mask.filter_rays(masked, far_o, miss, bbox_only=True), [False, False])
 
 
 def test_shrink_field_preserves_density_inside_new_box():
@@ -432,7 +433,7 @@ def test_shrink_field_preserves_density_inside_new_box():
     )
     params = numpy_field(cfg, (16, 16, 16), 5)
     new_box = np.array([[-0.7, -0.2, -1.1], [0.9, 1.3, 0.1]], np.float32)
-    small, aligned = render.shrink_field(params, CUBE, new_box)
+    small, aligned = alpha_mask.shrink_field(params, CUBE, new_box)
     assert grids.vm_resolution(small["density"]) == grids.vm_resolution(small["appearance"])
     assert grids.vm_resolution(small["density"])[0] < 16
     assert small["mlp"]["w0"] is params["mlp"]["w0"] and small["basis"] is params["basis"]
@@ -448,13 +449,13 @@ def test_render_image_matches_render_rays():
     geo = _slab_geometry(n_samples=96)
     params = sphere_params()
     rays_o, rays_d = camera_rays(7 * 9)
-    img = render.render_image(SPHERE, params, None, rays_o, rays_d, geo, 7, 9, chunk=16)
+    img = chunked.render_image(SPHERE, params, None, rays_o, rays_d, geo, 7, 9, chunk=16)
     ref = _render(SPHERE, params, geo, rays_o, rays_d, None, None)
     assert img["rgb"].shape == (7, 9, 3) and img["depth"].shape == (7, 9) and img["acc"].shape == (7, 9)
     np.testing.assert_allclose(img["rgb"].reshape(-1, 3), np.asarray(ref["rgb"]), atol=1e-5)
     np.testing.assert_allclose(img["depth"].reshape(-1), np.asarray(ref["depth"]), atol=1e-4)
     with pytest.raises(ValueError):
-        render.render_image(SPHERE, params, None, rays_o, rays_d, geo, 8, 9)
+        chunked.render_image(SPHERE, params, None, rays_o, rays_d, geo, 8, 9)
 
 
 def test_geometry_is_a_pytree_with_static_shape_fields():

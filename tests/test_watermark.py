@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mnerf_jax import field, grids, render
+from mnerf_jax import alpha_mask, field, grids, render
 from mnerf_jax import watermark as W
 from mnerf_jax.config import ModelConfig, WatermarkConfig
 from mnerf_jax.errors import MnerfError
@@ -148,7 +148,7 @@ def test_watermark_grid_follows_upsampling_and_shrinking() -> None:
     up["density"] = grids.upsample_vm(up["density"], (12, 10, 9))
     up["appearance"] = grids.upsample_vm(up["appearance"], (12, 10, 9))
     # Shrinking with the field keeps all grids at one resolution.
-    shrunk, _ = render.shrink_field(
+    shrunk, _ = alpha_mask.shrink_field(
         up, np.array([[-1.5] * 3, [1.5] * 3]), np.array([[-1.0, -1.0, -1.0], [1.0, 1.2, 1.0]])
     )
     res = grids.vm_resolution(shrunk["density"])

@@ -49,7 +49,7 @@ def test_load_run_loads_a_watermarked_run_from_a_fresh_process(tiny: TinyRuns) -
     script = (
         "import sys\n"
         "from mnerf_jax import run\n"
-        "assert 'mnerf_jax.embed' not in sys.modules\n"
+        "assert 'mnerf_jax.wm_run' not in sys.modules\n"
         "loaded = run.load_run(sys.argv[1])\n"
         "print(loaded.kind, loaded.step, loaded.extras['num_ids'], loaded.extras['id'])\n"
     )
@@ -61,8 +61,8 @@ def test_load_run_loads_a_watermarked_run_from_a_fresh_process(tiny: TinyRuns) -
 
 
 def test_render_with_id(tiny: TinyRuns, id_renders: dict[int, Path], tmp_path: Path, mnerf) -> None:
-    from mnerf_jax import embed
     from mnerf_jax import run as runs
+    from mnerf_jax import wm_run
 
     names = sorted(p.name for p in id_renders[1].iterdir())
     assert names == ["r_0.png", "r_5.png"]
@@ -71,7 +71,7 @@ def test_render_with_id(tiny: TinyRuns, id_renders: dict[int, Path], tmp_path: P
     # The PNG is the library's render of that ID, rounded to 8 bits.
     loaded = runs.load_run(tiny.wm)
     cameras = loaded.load_scene(splits=("test",)).split("test").cameras
-    expected = embed.render_with_id(loaded, 1, cameras, [0])[0]
+    expected = wm_run.render_with_id(loaded, 1, cameras, [0])[0]
     assert np.abs(b - np.round(np.clip(expected, 0, 1) * 255)).max() <= 1
     # Without --id a watermarked run renders ID 0, and says so.
     code, out, _ = mnerf("render", "--run", tiny.wm, "--views", "1", "--out", tmp_path / "default", "--quiet")

@@ -137,9 +137,9 @@ def load_for_render(run_dir: Path, wm_id: int | None = None) -> Any:
     loaded = runs.load_run(run_dir)
     if wm_id is None:
         return loaded
-    from mnerf_jax import embed
+    from mnerf_jax import wm_run
 
-    return embed.with_id(loaded, wm_id)
+    return wm_run.with_id(loaded, wm_id)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -84,6 +84,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"encoder steps through the whitened decoder ({d.finetune_steps})",
     )
     parser.add_argument(
+        "--finetune-sizes",
+        type=_sides,
+        default=None,
+        help="image sides of the encoder steps, in turn, comma-separated (the --size)",
+    )
+    parser.add_argument(
+        "--lr-finetune",
+        type=float,
+        default=d.lr_finetune,
+        help=f"peak learning rate of the encoder steps ({d.lr_finetune})",
+    )
+    parser.add_argument(
+        "--decoder-from",
+        type=Path,
+        default=None,
+        help="train only an encoder for this whitened decoder file (with --informed-steps 0 --steps 0); "
+        "the decoder is copied unchanged, its held-out figures re-measured with the new encoder",
+    )
+    parser.add_argument(
         "--size",
         type=int,
         default=d.size,
@@ -116,6 +135,9 @@ def run(args: argparse.Namespace) -> int:
         decoder_init=args.decoder_init,
         steps=args.steps,
         finetune_steps=args.finetune_steps,
+        finetune_sizes=args.finetune_sizes or (),
+        lr_finetune=args.lr_finetune,
+        decoder_from=str(args.decoder_from.resolve()) if args.decoder_from else "",
         size=args.size,
         batch=args.batch,
         seed=args.seed,

@@ -1,0 +1,204 @@
+"""A watermarked run (``WMRUN``) on disk: its checkpoint layout, loading it, its keys and decoder, its IDs.
+
+``WMRUN`` holds ``run.json`` (kind ``multinerf``, the source run, the decoder it started from),
+``config.json``, ``checkpoints/`` (field, decoder, optimiser, step, PRNG key, geometry), ``keys.json`` (tied
+to the fingerprint of ``decoder.npz``, the decoder as fine-tuned with the field) and ``embed.json``
+(progress). Importing this module registers the loader, so ``run.load_run(WMRUN)`` returns a
+``run.LoadedRun`` set to render ID 0; :func:`with_id` picks another. ``embed`` writes these runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from mnerf_jax import config as config_lib
+from mnerf_jax import decoder as decoder_lib
+from mnerf_jax import decoder_io, field, render, watermark
+from mnerf_jax import keys as keys_lib
+from mnerf_jax import run as runs
+from mnerf_jax.checkpoint import CheckpointStore
+from mnerf_jax.config import Config, TrainConfig, WatermarkConfig
+from mnerf_jax.errors import MnerfError
+
+WM_KIND = runs.WATERMARK_KIND
+STATE_VERSION = 1
+META_FILE = "embed.json"
+DECODER_FILE = "decoder.npz"
+OptimizerFactory = Callable[[WatermarkConfig], optax.GradientTransformation]
+
+
+class EmbedError(MnerfError):
+    """Bad input to the embedding (a source that is not a fitted TensoRF, an unusable WMRUN, bad images)."""
+
+
+def fingerprint_config(config: Config) -> Config:
+    """The config with everything that does not change the embedding's trajectory normalised away."""
+    wm = dataclasses.replace(config.watermark, checkpoint_every=0, keep_checkpoints=0, id_threshold=0.0)
+    return dataclasses.replace(config, train=TrainConfig(), watermark=wm)
+
+
+def normalised_meta(meta: dict[str, Any]) -> dict[str, Any]:
+    """Checkpoint meta whose config is normalised like ``fingerprint_config``, so its fields compare
+    equal to the current config's even when its digest was computed under older fingerprint rules."""
+    try:
+        saved = fingerprint_config(config_lib.from_dict(meta["config"]))
+    except (KeyError, TypeError, config_lib.ConfigError):  # check_compatible reports it
+        return meta
+    return {**meta, "config": saved.to_dict()}
+
+
+SECTIONS = ("data", "model", "render", "watermark")
+GEOMETRY_KEYS = ("aabb", "alpha_mask", "mask_aabb", "step_size", "near", "far", "distance_scale")
+
+
+def geometry_tree(g: render.Geometry) -> dict[str, jax.Array]:
+    return {k: getattr(g, k) for k in GEOMETRY_KEYS}
+
+
+def geometry_from(tree: dict[str, Any], meta: dict[str, Any]) -> render.Geometry:
+    mask = np.asarray(tree["alpha_mask"], bool)
+    f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
+    return render.Geometry(
+        aabb=f32(tree["aabb"]), alpha_mask=jnp.asarray(mask),
+        alpha_cells=jnp.asarray(render.mask_cells(mask)), mask_aabb=f32(tree["mask_aabb"]),
+        step_size=f32(tree["step_size"]), near=f32(tree["near"]), far=f32(tree["far"]),
+        distance_scale=f32(tree["distance_scale"]), n_samples=int(meta["n_samples"]), ndc=bool(meta["ndc"]),
+        white_bg=bool(meta["white_bg"]),
+    )  # fmt: skip
+
+
+def state_target(
+    config: Config, meta: dict[str, Any], optimizer: OptimizerFactory | None = None
+) -> dict[str, Any]:
+    """Pytree structure of an embedding checkpoint (the shapes come from the checkpoint); with the state of
+    ``optimizer(config.watermark)`` when given (resuming), without it otherwise (loading for rendering)."""
+    cfg = config.watermark
+    resolution = tuple(meta["resolution"])
+
+    def init() -> tuple[Any, Any]:
+        base = field.init_field(jax.random.key(0), config.model, resolution)
+        params = watermark.add_watermark(jax.random.key(1), base, cfg, int(meta["num_ids"]))
+        return params, decoder_lib.init_decoder(jax.random.key(2), int(meta["bits"]))
+
+    params, dec = jax.eval_shape(init)
+    scalar = jax.ShapeDtypeStruct((), jnp.float32)
+    target = {
+        "params": params,
+        "decoder": dec,
+        "step": jax.ShapeDtypeStruct((), jnp.int32),
+        "key": jax.ShapeDtypeStruct((2,), jnp.uint32),
+        "geometry": dict.fromkeys(GEOMETRY_KEYS, scalar),
+    }
+    if optimizer is not None:
+        values = {"field": params, "decoder": dec["params"]}
+        target["opt_state"] = jax.eval_shape(optimizer(cfg).init, values)
+    return target
+
+
+def restore(store: CheckpointStore, run_dir: Path, step: int | None = None,
+            optimizer: OptimizerFactory | None = None) -> tuple[Config, dict, dict]:  # fmt: skip
+    """``(config, checkpoint tree, meta)`` of an embedding checkpoint (with the optimiser state when
+    ``optimizer``, the embedding's ``make_optimizer``, is given)."""
+    meta = store.read_meta(step)
+    if meta.get("kind") != WM_KIND:
+        raise EmbedError(f"{run_dir}: its checkpoint holds a {meta.get('kind')!r} model, not a watermark")
+    config = config_lib.from_dict(meta["config"])
+    tree, meta = store.restore(state_target(config, meta, optimizer), int(meta["step"]))
+    return config, tree, meta
+
+
+def _keys_and_decoder(run_dir: Path) -> tuple[keys_lib.KeySet, decoder_io.LoadedDecoder]:
+    """``keys.json`` and ``decoder.npz`` of a watermarked run, checked against each other."""
+    if not (run_dir / DECODER_FILE).is_file():
+        raise EmbedError(f"{run_dir} has no {DECODER_FILE} (the embedding has not written a checkpoint yet)")
+    dec = decoder_io.load_decoder(run_dir / DECODER_FILE)
+    keys = keys_lib.load_keys(run_dir, decoder_fingerprint=dec.fingerprint, expect_bits=dec.bits)
+    return keys, dec
+
+
+def _load_multinerf(
+    run_dir: Path, marker: dict[str, Any], config: Config, step: int | None
+) -> runs.LoadedRun:
+    """``run.load_run`` loader of watermarked runs: ``cond`` renders ID 0; ``extras`` hold the keys, the
+    decoder, the source run and the number of IDs (see :func:`with_id`)."""
+    keys, dec = _keys_and_decoder(run_dir)
+    store = CheckpointStore(run_dir, create=False)
+    try:
+        if store.latest_step() is None:
+            raise EmbedError(f"{run_dir} holds no checkpoint yet")
+        config, tree, meta = restore(store, run_dir, step)
+    finally:
+        store.close()
+    if int(meta["num_ids"]) != keys.num_ids or int(meta["bits"]) != keys.bits:
+        raise EmbedError(f"{run_dir}: keys.json ({keys.num_ids} IDs × {keys.bits} bits) does not match the "
+                         f"checkpoint ({meta['num_ids']} × {meta['bits']})")  # fmt: skip
+    params = jax.tree.map(jnp.asarray, tree["params"])
+    loaded = runs.LoadedRun(
+        run_dir=run_dir, kind=WM_KIND, config=config, marker=marker, params=params,
+        geometry=geometry_from(tree["geometry"], meta["geometry"]),
+        field_fns=watermark.field_fns(config.model, config.watermark), cond=None, step=int(meta["step"]),
+        meta=meta,
+        extras={"keys": keys, "decoder": dec, "num_ids": keys.num_ids, "id": None,
+                "source_run": marker.get("source_run")},
+    )  # fmt: skip
+    return with_id(loaded, 0)
+
+
+runs.register_run_kind(WM_KIND, _load_multinerf)
+
+
+def is_watermarked(run: runs.LoadedRun) -> bool:
+    return run.kind == WM_KIND
+
+
+def with_id(run: runs.LoadedRun, index: Any) -> runs.LoadedRun:
+    """The loaded watermarked run set to render ID ``index`` (``mnerf render --id K``).
+
+    KeysError for an ID outside ``[0, N)``; EmbedError for a run without watermarks.
+    """
+    if not is_watermarked(run):
+        raise EmbedError(f"{run.run_dir} is not a watermarked run: it has no IDs to choose from")
+    index = keys_lib.check_id(index, int(run.extras["num_ids"]))
+    cond = watermark.condition(run.params, index, run.config.watermark)
+    return dataclasses.replace(run, cond=cond, extras={**run.extras, "id": index})
+
+
+def require_watermarked(run_dir: str | Path) -> dict[str, Any]:
+    """``run.json`` of a watermarked run directory; EmbedError saying what ``run_dir`` holds otherwise."""
+    run_dir = Path(run_dir)
+    marker = runs.read_marker(run_dir) if run_dir.is_dir() else None
+    if marker is not None and marker.get("kind") == WM_KIND:
+        return marker
+    if marker is not None:
+        raise EmbedError(f"{run_dir} holds a {marker.get('kind')!r} run without watermarks "
+                         f"(make one with `mnerf embed --from {run_dir} --out WMRUN`)")  # fmt: skip
+    if (run_dir / keys_lib.KEYS_FILE).is_file():
+        raise EmbedError(f"{run_dir} has keys but no {runs.RUN_MARKER}: not a complete watermarked run")
+    raise EmbedError(f"{run_dir} is not a watermarked run (make one with `mnerf embed`)")
+
+
+def load_watermarked_run(run_dir: str | Path, step: int | None = None) -> runs.LoadedRun:
+    """``run.load_run`` for a directory that must hold a watermarked run."""
+    require_watermarked(run_dir)
+    return runs.load_run(run_dir, step)
+
+
+def load_keys_and_decoder(run_dir: str | Path) -> tuple[keys_lib.KeySet, decoder_io.LoadedDecoder]:
+    """The keys and the (fine-tuned) decoder of a watermarked run, without restoring its field."""
+    require_watermarked(run_dir)
+    return _keys_and_decoder(Path(run_dir))
+
+
+def render_with_id(run: runs.LoadedRun, index: int, cameras: Any, indices: Sequence[int] | None = None,
+                   **kwargs: Any) -> list[np.ndarray]:  # fmt: skip
+    """Evaluation renders ``[H, W, 3]`` of ``cameras`` (``data.Cameras``) for ID ``index``."""
+    return runs.render_views(with_id(run, index), cameras, indices, **kwargs)
