@@ -356,7 +356,7 @@ def _checkpoint_tree(state: EmbedState, geometry: render.Geometry) -> dict[str, 
         "opt_state": state.opt_state,
         "step": state.step,
         "key": jax.random.key_data(state.key),
-        "geometry": wm_run.geometry_tree(geometry),
+        "geometry": render.geometry_arrays(geometry),
     }
 
 
@@ -371,7 +371,7 @@ def _checkpoint_meta(config: Config, state: EmbedState, geometry: render.Geometr
         "fingerprint": config_fingerprint(wm_run.fingerprint_config(config), wm_run.SECTIONS),
         "config": config.to_dict(),
         "resolution": list(grids.vm_resolution(state.params["density"])),
-        "geometry": {"n_samples": geometry.n_samples, "ndc": geometry.ndc, "white_bg": geometry.white_bg},
+        "geometry": render.geometry_meta(geometry),
         "num_ids": keys.num_ids,
         "bits": keys.bits,
         "budgets": [int(b) for b in budgets],
@@ -521,7 +521,7 @@ def embed(
                 step=jnp.asarray(tree["step"], jnp.int32),
                 key=jax.random.wrap_key_data(jnp.asarray(tree["key"], jnp.uint32)),
             )
-            geometry = wm_run.geometry_from(tree["geometry"], meta["geometry"])
+            geometry = render.geometry_from_checkpoint(tree["geometry"], meta["geometry"])
             _seed_budgets(policy, n_rays, n_samples, meta["budgets"])
         else:
             keys = keys_lib.generate_keys(num_ids, bits, cfg.min_hamming, cfg.key_seed, loaded.fingerprint)

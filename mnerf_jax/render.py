@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import flax.struct
@@ -215,6 +215,34 @@ def make_geometry(
         n_samples=int(n_samples),
         ndc=bool(ndc),
         white_bg=bool(white_bg),
+    )
+
+
+# A geometry in a checkpoint: its arrays in the tree, its static fields in the meta.
+GEOMETRY_ARRAYS = ("aabb", "alpha_mask", "mask_aabb", "step_size", "near", "far", "distance_scale")
+
+
+def geometry_arrays(g: Geometry) -> dict[str, Array]:
+    """The arrays of ``g`` a checkpoint stores (``alpha_cells`` is derived from the mask)."""
+    return {k: getattr(g, k) for k in GEOMETRY_ARRAYS}
+
+
+def geometry_meta(g: Geometry) -> dict[str, Any]:
+    """The static fields of ``g`` (JSON)."""
+    return {"n_samples": g.n_samples, "ndc": g.ndc, "white_bg": g.white_bg}
+
+
+def geometry_from_checkpoint(arrays: Mapping[str, Any], meta: Mapping[str, Any]) -> Geometry:
+    """The geometry of :func:`geometry_arrays` ``arrays`` and :func:`geometry_meta` ``meta``."""
+    mask = np.asarray(arrays["alpha_mask"], bool)
+    f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
+    return Geometry(
+        alpha_mask=jnp.asarray(mask),
+        alpha_cells=jnp.asarray(mask_cells(mask)),
+        **{k: f32(arrays[k]) for k in GEOMETRY_ARRAYS if k != "alpha_mask"},
+        n_samples=int(meta["n_samples"]),
+        ndc=bool(meta["ndc"]),
+        white_bg=bool(meta["white_bg"]),
     )
 
 

@@ -412,30 +412,17 @@ def upsample(config: Config, state: TrainState, n_voxels: int) -> TrainState:
 
 
 def _checkpoint_tree(state: TrainState, ray_keep: np.ndarray | None) -> dict[str, Any]:
-    g = state.geometry
     return {
         "params": state.params,
         "opt_state": state.opt_state,
         "step": state.step,
         "lr_base_step": state.lr_base_step,
         "key": jax.random.key_data(state.key),
-        "geometry": {
-            "aabb": g.aabb,
-            "alpha_mask": g.alpha_mask,
-            "mask_aabb": g.mask_aabb,
-            "step_size": g.step_size,
-            "near": g.near,
-            "far": g.far,
-            "distance_scale": g.distance_scale,
-        },  # fmt: skip
+        "geometry": render.geometry_arrays(state.geometry),
         # Packed keep-bits of the ray filter (training rays after the bbox drop); a placeholder byte
         # before it (orbax cannot store empty arrays).
         "ray_keep": np.packbits(ray_keep) if ray_keep is not None else np.zeros((1,), np.uint8),
     }
-
-
-def _geometry_meta(g: render.Geometry) -> dict[str, Any]:
-    return {"n_samples": g.n_samples, "ndc": g.ndc, "white_bg": g.white_bg}
 
 
 def state_target(config: Config, meta: Mapping[str, Any]) -> dict[str, Any]:
@@ -450,15 +437,7 @@ def state_target(config: Config, meta: Mapping[str, Any]) -> dict[str, Any]:
         "step": jax.ShapeDtypeStruct((), jnp.int32),
         "lr_base_step": jax.ShapeDtypeStruct((), jnp.int32),
         "key": jax.ShapeDtypeStruct((2,), jnp.uint32),
-        "geometry": {
-            "aabb": scalar,
-            "alpha_mask": scalar,
-            "mask_aabb": scalar,
-            "step_size": scalar,
-            "near": scalar,
-            "far": scalar,
-            "distance_scale": scalar,
-        },  # fmt: skip
+        "geometry": dict.fromkeys(render.GEOMETRY_ARRAYS, scalar),
         "ray_keep": jax.ShapeDtypeStruct((1,), jnp.uint8),
     }
 
@@ -467,17 +446,7 @@ def state_from_checkpoint(
     tree: Mapping[str, Any], meta: Mapping[str, Any]
 ) -> tuple[TrainState, np.ndarray | None]:
     """``(TrainState, ray keep-mask or None)`` from a restored checkpoint tree and its meta."""
-    g = tree["geometry"]
-    gm = meta["geometry"]
-    mask = np.asarray(g["alpha_mask"], bool)
-    f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
-    geometry = render.Geometry(
-        aabb=f32(g["aabb"]), alpha_mask=jnp.asarray(mask),
-        alpha_cells=jnp.asarray(render.mask_cells(mask)), mask_aabb=f32(g["mask_aabb"]),
-        step_size=f32(g["step_size"]), near=f32(g["near"]), far=f32(g["far"]),
-        distance_scale=f32(g["distance_scale"]), n_samples=int(gm["n_samples"]), ndc=bool(gm["ndc"]),
-        white_bg=bool(gm["white_bg"]),
-    )  # fmt: skip
+    geometry = render.geometry_from_checkpoint(tree["geometry"], meta["geometry"])
     as_jnp = functools.partial(jax.tree.map, jnp.asarray)
     state = TrainState(
         params=as_jnp(tree["params"]),
@@ -679,7 +648,7 @@ class _Trainer:
             "config": self.config.to_dict(),
             "resolution": list(self.state.resolution),
             "mask_resolution": list(self.mask_resolution),
-            "geometry": _geometry_meta(self.state.geometry),
+            "geometry": render.geometry_meta(self.state.geometry),
             "budgets": self.budgets.to_dict(),
             "phase_start": self.phase_start,
             "ray_keep_count": None if self.ray_keep is None else int(self.ray_keep.sum()),

@@ -10,7 +10,6 @@ to the fingerprint of ``decoder.npz``, the decoder as fine-tuned with the field)
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -57,25 +56,6 @@ def normalised_meta(meta: dict[str, Any]) -> dict[str, Any]:
 
 
 SECTIONS = ("data", "model", "render", "watermark")
-GEOMETRY_KEYS = ("aabb", "alpha_mask", "mask_aabb", "step_size", "near", "far", "distance_scale")
-
-
-def geometry_tree(g: render.Geometry) -> dict[str, jax.Array]:
-    return {k: getattr(g, k) for k in GEOMETRY_KEYS}
-
-
-def geometry_from(tree: dict[str, Any], meta: dict[str, Any]) -> render.Geometry:
-    mask = np.asarray(tree["alpha_mask"], bool)
-    f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
-    return render.Geometry(
-        aabb=f32(tree["aabb"]), alpha_mask=jnp.asarray(mask),
-        alpha_cells=jnp.asarray(render.mask_cells(mask)), mask_aabb=f32(tree["mask_aabb"]),
-        step_size=f32(tree["step_size"]), near=f32(tree["near"]), far=f32(tree["far"]),
-        distance_scale=f32(tree["distance_scale"]), n_samples=int(meta["n_samples"]), ndc=bool(meta["ndc"]),
-        white_bg=bool(meta["white_bg"]),
-    )  # fmt: skip
-
-
 def state_target(
     config: Config, meta: dict[str, Any], optimizer: OptimizerFactory | None = None
 ) -> dict[str, Any]:
@@ -96,7 +76,7 @@ def state_target(
         "decoder": dec,
         "step": jax.ShapeDtypeStruct((), jnp.int32),
         "key": jax.ShapeDtypeStruct((2,), jnp.uint32),
-        "geometry": dict.fromkeys(GEOMETRY_KEYS, scalar),
+        "geometry": dict.fromkeys(render.GEOMETRY_ARRAYS, scalar),
     }
     if optimizer is not None:
         values = {"field": params, "decoder": dec["params"]}
@@ -144,7 +124,7 @@ def _load_multinerf(
     params = jax.tree.map(jnp.asarray, tree["params"])
     loaded = runs.LoadedRun(
         run_dir=run_dir, kind=WM_KIND, config=config, marker=marker, params=params,
-        geometry=geometry_from(tree["geometry"], meta["geometry"]),
+        geometry=render.geometry_from_checkpoint(tree["geometry"], meta["geometry"]),
         field_fns=watermark.field_fns(config.model, config.watermark), cond=None, step=int(meta["step"]),
         meta=meta,
         extras={"keys": keys, "decoder": dec, "num_ids": keys.num_ids, "id": None,
