@@ -36,13 +36,15 @@ def informed_embed(
     bits: jax.Array,
     psnr: jax.Array | float,
     iterations: int = 1,
+    mask: jax.Array | None = None,
 ) -> jax.Array:
     """Images ``[B, H, W, 3]`` in [0, 1] carrying ``bits [B, L]`` (0/1) for the decoder behind ``logit_fn``.
 
     ``logit_fn(images) -> logits [B, L]``. Each iteration adds the normalised ascent direction of the message
     log-likelihood and rescales the accumulated residual to ``psnr`` dB; the result is clipped to [0, 1], so
     every image's PSNR against its original is at least ``psnr``. Differentiable in the decoder's parameters
-    (the decoder's training differentiates through its own gradient).
+    (the decoder's training differentiates through its own gradient). ``mask [B, H, W, 1]`` (0/1), when
+    given, confines the residual to its pixels (the PSNR still counts the whole image).
     """
 
     # BCE at temperature 1: the ascent direction is Σ (b − σ(logit))·∇logit, a signed sum over the bits
@@ -52,6 +54,7 @@ def informed_embed(
 
     delta = jnp.zeros_like(images)
     for _ in range(iterations):
-        step = scale_to_psnr(jax.grad(gain)(delta), psnr)
+        direction = jax.grad(gain)(delta)
+        step = scale_to_psnr(direction if mask is None else direction * mask, psnr)
         delta = scale_to_psnr(delta + step, psnr)
     return jnp.clip(images + delta, 0.0, 1.0)

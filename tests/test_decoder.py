@@ -443,6 +443,12 @@ def test_informed_embedding_follows_the_decoder_gradient() -> None:
         np.testing.assert_allclose(psnr, 25.0, atol=1e-3)  # no pixel is clipped here
         shift = logits_of(encoded) - logits_of(images)
         np.testing.assert_array_equal(np.asarray(shift > 0), np.asarray(bits > 0.5))
+    # A mask confines the residual to its pixels at the same whole-image PSNR.
+    mask = jnp.zeros((4, 16, 16, 1)).at[:, 4:12, 4:12].set(1.0)
+    encoded = informed.informed_embed(logits_of, images, bits, psnr=25.0, iterations=2, mask=mask)
+    assert float(jnp.abs((encoded - images) * (1.0 - mask)).max()) == 0.0
+    psnr = -10 * jnp.log10(jnp.mean((encoded - images) ** 2, axis=(1, 2, 3)))
+    np.testing.assert_allclose(psnr, 25.0, atol=1e-3)
 
 
 def test_encoder_respects_psnr() -> None:
