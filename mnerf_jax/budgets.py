@@ -21,7 +21,7 @@ import numpy as np
 from mnerf_jax import render
 
 if TYPE_CHECKING:
-    from mnerf_jax.train import RaySet
+    from mnerf_jax.sampler import RaySet
 
 Array = jax.Array
 

@@ -45,8 +45,9 @@ from mnerf_jax import alpha_mask, field, grids, render
 from mnerf_jax.budgets import SampleBudgets, estimate_density_count, refit_due
 from mnerf_jax.checkpoint import CheckpointStore, check_compatible, config_fingerprint
 from mnerf_jax.config import Config
-from mnerf_jax.data import Scene, all_rays
+from mnerf_jax.data import Scene
 from mnerf_jax.errors import MnerfError
+from mnerf_jax.sampler import PermutationSampler, RaySet, training_rays
 
 Array = jax.Array
 Params = Any
@@ -250,62 +251,6 @@ def train_step(
     new_state = state.replace(params=params, opt_state=opt_state, step=state.step + 1)
     aux["psnr"] = -10.0 * jnp.log10(jnp.maximum(aux["mse"], 1e-12))
     return new_state, aux
-
-
-# --------------------------------------------------------------------------------------------------
-# Rays and the sampler
-# --------------------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass
-class RaySet:
-    """Training rays on the host: ``origins``, ``directions``, ``rgb`` ``[N, 3]`` float32."""
-
-    origins: np.ndarray
-    directions: np.ndarray
-    rgb: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.origins.shape[0])
-
-    def select(self, keep: np.ndarray) -> RaySet:
-        """The rays where ``keep [N]`` is True."""
-        return RaySet(self.origins[keep], self.directions[keep], self.rgb[keep])
-
-
-class PermutationSampler:
-    """TensoRF's SimpleSampler made a function of the step: a fresh permutation every epoch.
-
-    Batch ``j`` of epoch ``e`` (``floor(N / B)`` batches per epoch; the tail of a permutation is
-    unused, as TensoRF) is ``perm(seed, start, e)[j B : (j + 1) B]``.
-    """
-
-    def __init__(self, seed: int, n_rays: int, batch: int, start: int):
-        if n_rays < 1:
-            raise MnerfError("no training rays left (every ray misses the scene box)")
-        self.seed, self.n_rays, self.start = int(seed), int(n_rays), int(start)
-        self.batch = min(int(batch), self.n_rays)
-        self.per_epoch = max(self.n_rays // self.batch, 1)
-        self._cached: tuple[int, np.ndarray] | None = None
-
-    def indices(self, step: int) -> np.ndarray:
-        """``[B]`` int64 ray indices of step ``step``."""
-        local = step - self.start
-        epoch, j = divmod(local, self.per_epoch)
-        if self._cached is None or self._cached[0] != epoch:
-            rng = np.random.default_rng([self.seed, 0x5A4D, self.start, epoch])
-            self._cached = (epoch, rng.permutation(self.n_rays))
-        return self._cached[1][j * self.batch : (j + 1) * self.batch]
-
-
-def training_rays(scene: Scene, geometry: render.Geometry) -> RaySet:
-    """All rays of the train split; for non-NDC scenes those missing the aabb are dropped."""
-    origins, directions, rgb = all_rays("train", scene)
-    if not scene.ndc:
-        keep = alpha_mask.filter_rays(geometry, origins, directions, chunk=1 << 20, bbox_only=True)
-        if not keep.all():
-            origins, directions, rgb = origins[keep], directions[keep], rgb[keep]
-    return RaySet(np.ascontiguousarray(origins), np.ascontiguousarray(directions), np.ascontiguousarray(rgb))
 
 
 # --------------------------------------------------------------------------------------------------

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import TINY_SCHEDULE as TINY
 
-from mnerf_jax import grids, train
+from mnerf_jax import grids, sampler, train
 from mnerf_jax.config import load_config
 from mnerf_jax.data import load_scene
 from mnerf_jax.errors import MnerfError
@@ -57,13 +57,13 @@ def test_blender_voxel_schedule_is_log_linear_to_300():
 
 
 def test_sampler_is_a_function_of_seed_and_step():
-    a = train.PermutationSampler(seed=3, n_rays=1000, batch=128, start=0)
-    b = train.PermutationSampler(seed=3, n_rays=1000, batch=128, start=0)
+    a = sampler.PermutationSampler(seed=3, n_rays=1000, batch=128, start=0)
+    b = sampler.PermutationSampler(seed=3, n_rays=1000, batch=128, start=0)
     epoch = np.concatenate([a.indices(s) for s in range(a.per_epoch)])
     assert len(np.unique(epoch)) == 128 * 7  # batches of one epoch never repeat a ray
     np.testing.assert_array_equal(a.indices(11), b.indices(11))  # a fresh sampler (resume) agrees
     assert not np.array_equal(a.indices(0), a.indices(a.per_epoch))  # reshuffled every epoch
-    c = train.PermutationSampler(seed=4, n_rays=1000, batch=128, start=0)
+    c = sampler.PermutationSampler(seed=4, n_rays=1000, batch=128, start=0)
     assert not np.array_equal(a.indices(0), c.indices(0))
 
 
