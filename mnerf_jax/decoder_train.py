@@ -340,6 +340,8 @@ def train_decoder(
             f"--pool-margin {cfg.pool_margin} leaves no positions to pool in {smallest}-px training images "
             f"(the LL2 side, {smallest // 4}, must exceed twice the margin; raise --size / --informed-sizes)"
         )
+    if cfg.decoder_from:
+        decoder_from_file(cfg)  # a wrong file fails here, before anything is written
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoint.msgpack"

@@ -373,6 +373,9 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
     )  # fmt: skip
     with pytest.raises(MnerfError, match="--informed-steps 0 --steps 0"):
         decoder_train.train_decoder(dataclasses.replace(refit, steps=2), tmp_path / "bad", progress=False)
+    with pytest.raises(MnerfError, match="decodes 8-bit messages, but 16 bits"):
+        decoder_train.train_decoder(dataclasses.replace(refit, bits=16), tmp_path / "bad16", progress=False)
+    assert not (tmp_path / "bad16").exists()  # refused before anything is written
     again_metrics = decoder_train.train_decoder(refit, tmp_path / "refit", progress=False)
     assert again_metrics["fingerprint"] == loaded.fingerprint
     assert set(again_metrics["heldout"]) == {"32px", "48px"}
