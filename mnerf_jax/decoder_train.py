@@ -208,12 +208,13 @@ def decoder_from_file(cfg: DecoderTrainConfig) -> dict[str, Any]:
 def init_state(cfg: DecoderTrainConfig) -> tuple[dict[str, Any], tuple]:
     k_enc, k_dec = jax.random.split(jax.random.PRNGKey(cfg.seed))
     encoder = init_encoder(k_enc, cfg.bits, cfg.encoder_channels, cfg.encoder_depth)
-    decoder = dec.init_decoder(k_dec, cfg.bits)
-    if cfg.decoder_init == "filterbank":
-        decoder = dec.filterbank_init(decoder)
-    decoder = dec.with_pool_margin(decoder, cfg.pool_margin)
     if cfg.decoder_from:
         decoder = decoder_from_file(cfg)
+    else:
+        decoder = dec.init_decoder(k_dec, cfg.bits)
+        if cfg.decoder_init == "filterbank":
+            decoder = dec.filterbank_init(decoder)
+        decoder = dec.with_pool_margin(decoder, cfg.pool_margin)
     tx_joint, tx_ft, tx_inf = make_optimizers(cfg)
     state = {
         "step": 0,
