@@ -112,6 +112,22 @@ def total_steps(cfg: WatermarkConfig) -> int:
     return int(cfg.phase1_steps) + int(cfg.phase2_steps)
 
 
+# Fields of WatermarkConfig that only the host loop reads (which step is in which phase, keys, seeds,
+# checkpoints, identification): the compiled step sees the learning-rate decay's length, not the split.
+_HOST_ONLY_FIELDS = (
+    "min_hamming", "key_seed", "checkpoint_every", "seed", "id_threshold", "keep_checkpoints",
+)  # fmt: skip
+
+
+def step_config(cfg: WatermarkConfig) -> WatermarkConfig:
+    """``cfg`` as :class:`StepSpec` holds it: host-only fields at their defaults and every step in one
+    phase count, so runs that differ only there share one compilation of :func:`embed_step` (the phase itself
+    is ``StepSpec.phase``)."""
+    defaults = WatermarkConfig()
+    host = {name: getattr(defaults, name) for name in _HOST_ONLY_FIELDS}
+    return dataclasses.replace(cfg, **host, phase1_steps=0, phase2_steps=total_steps(cfg))
+
+
 def phase_of(step: int, cfg: WatermarkConfig) -> int:
     """1 for the first ``phase1_steps`` steps, 2 after."""
     return 1 if step < cfg.phase1_steps else 2
@@ -602,6 +618,7 @@ class _Loop:
         messages = self.keys.messages.astype(np.float32)
         start = step = int(state.step)
         every = max(int(cfg.checkpoint_every), 1)
+        step_cfg = step_config(cfg)
         bar = tqdm(total=stop, initial=start, disable=not self.progress, desc="embed", unit="step",
                    dynamic_ncols=True)  # fmt: skip
         recent: list[tuple[float, float]] = []
@@ -614,7 +631,7 @@ class _Loop:
                 index, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images))
                 batch = _batch(self.split, view, messages[index], index)
                 db, cb = self.budgets()
-                spec = StepSpec(model=self.config.model, wm=cfg, adam_b1=self.config.train.adam_b1,
+                spec = StepSpec(model=self.config.model, wm=step_cfg, adam_b1=self.config.train.adam_b1,
                                 adam_b2=self.config.train.adam_b2, phase=phase, height=self.layout.height,
                                 width=self.layout.width, density_budget=db, colour_budget=cb)  # fmt: skip
                 new_state, metrics = embed_step(state, self.geometry, batch, index_arr, owner_arr, self.vgg,

@@ -340,15 +340,18 @@ def test_loaded_run_renders_each_id_differently(tiny: TinyRuns) -> None:
 
 
 def test_resume_continues_exactly(tiny: TinyRuns) -> None:
-    # 3 steps, stop, resume to 5  ==  5 steps in one go.
+    # 3 steps, stop, resume to 5  ==  5 steps in one go, across the phase boundary (phase 2 with its random
+    # augmentations). The same 80 steps in all as the tiny run: its compiled steps serve these.
     root = tiny.root
-    args = dict(overrides=tiny.embed_overrides, decoder_path=tiny.decoder, progress=False)
+    overrides = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=78"]
+    args = dict(overrides=overrides, decoder_path=tiny.decoder, progress=False)
     E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=3, **args)
     with pytest.raises(MnerfError, match="--resume"):
         E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=5, **args)
     resumed = E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=5, resume=True, **args)
     E.embed(tiny.fit, root / "r_once", 2, 8, stop_at=5, **args)
     assert resumed.steps == 5
+    assert json.loads((root / "r_split" / "embed.json").read_text())["phase"] == 2
     a = wm_run.load_watermarked_run(root / "r_split")
     b = wm_run.load_watermarked_run(root / "r_once")
     assert a.step == b.step == 5
@@ -487,3 +490,17 @@ def test_phases_and_step_choices_are_deterministic() -> None:
     assert picks == [E.step_choice(0, s, 4, 10) for s in range(400)]
     ids = np.array([p[0] for p in picks])
     assert set(ids) == {0, 1, 2, 3} and abs((ids == 0).mean() - 0.25) < 0.08
+
+
+def test_step_config_keeps_what_the_compiled_step_reads() -> None:
+    # Runs that differ only in host-side fields (phase split, seeds, checkpoints) share one compiled step;
+    # the decay length (the total step count) and every loss weight still tell steps apart.
+    from mnerf_jax.config import WatermarkConfig
+
+    base = WatermarkConfig(phase1_steps=40, phase2_steps=40)
+    same = WatermarkConfig(phase1_steps=2, phase2_steps=78, seed=5, key_seed=3, checkpoint_every=7)
+    assert E.step_config(base) == E.step_config(same)
+    assert E.total_steps(E.step_config(base)) == 80
+    assert E.step_config(base) != E.step_config(WatermarkConfig(phase1_steps=40, phase2_steps=41))
+    heavier_rgb = WatermarkConfig(phase1_steps=40, phase2_steps=40, lambda_rgb=1.0)
+    assert E.step_config(base) != E.step_config(heavier_rgb)
