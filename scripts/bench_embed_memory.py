@@ -7,7 +7,7 @@ RUN is a fitted TensoRF (``mnerf fit``, or ``DIR/run`` after ``mnerf demo --out 
 camera is rescaled to each image side (same field of view), the watermark modules are added as ``mnerf embed``
 adds them (4 IDs × 16 bits, random-init decoder) and ``--steps`` phase-2 steps run on that view:
 
-- ``deferred``: ``embed.embed_step``, the path ``mnerf embed`` takes (the image is rendered without a graph,
+- ``deferred``: ``wm_step.embed_step``, the path ``mnerf embed`` takes (the image is rendered without a graph,
   then square patches of ``--patch`` px are re-rendered one at a time with ``jax.vjp``);
 - ``direct``: ``jax.grad`` of ``deferred.direct_objective``: the same loss with every patch on the graph.
 
@@ -37,7 +37,7 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
-    from mnerf_jax import budgets, deferred, embed, watermark
+    from mnerf_jax import budgets, deferred, embed, watermark, wm_step
     from mnerf_jax import decoder as decoder_lib
     from mnerf_jax.data.rays import camera_rays
 
@@ -56,8 +56,8 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     params = watermark.add_watermark(jax.random.fold_in(root, 1), source.params, cfg, 4)
     dec = decoder_lib.init_decoder(jax.random.PRNGKey(0), 16)
     dec_vars = dict(dec)
-    tx = embed.make_optimizer(cfg, config.train.adam_b1, config.train.adam_b2)
-    state = embed.EmbedState(params=params, decoder=dec_vars,
+    tx = wm_step.make_optimizer(cfg, config.train.adam_b1, config.train.adam_b2)
+    state = wm_step.EmbedState(params=params, decoder=dec_vars,
                              opt_state=tx.init({"field": params, "decoder": dec_vars["params"]}),
                              step=jnp.zeros((), jnp.int32), key=jax.random.fold_in(root, 2))  # fmt: skip
     batch = {
@@ -69,9 +69,9 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     policy = budgets.BudgetPolicy()
     site, n_rays, n_samples = "bench", layout.size**2, geometry.n_samples
 
-    def spec() -> embed.StepSpec:
+    def spec() -> wm_step.StepSpec:
         db, cb = policy.budgets(site, n_rays, n_samples)
-        return embed.StepSpec(model=config.model, wm=cfg, adam_b1=config.train.adam_b1,
+        return wm_step.StepSpec(model=config.model, wm=cfg, adam_b1=config.train.adam_b1,
                               adam_b2=config.train.adam_b2, phase=2, height=height, width=size,
                               density_budget=db, colour_budget=cb)  # fmt: skip
 
@@ -80,7 +80,7 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     if mode == "deferred":
         done = 0
         while done < steps:
-            new_state, metrics = embed.embed_step(state, geometry, batch, index, owner, None, spec=spec())
+            new_state, metrics = wm_step.embed_step(state, geometry, batch, index, owner, None, spec=spec())
             counts = {k: int(metrics[k]) for k in ("density_count", "colour_count")}
             if not policy.update(site, counts, n_rays, n_samples):
                 state, done = new_state, done + 1
@@ -88,22 +88,22 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
         # Budgets from a forward-only pass (patch by patch, small), then the direct gradient.
         while True:
             s = spec()
-            fn = embed.render_patch_fn(s, geometry, batch["id"])
+            fn = wm_step.render_patch_fn(s, geometry, batch["id"])
             rays = (batch["rays_o"], batch["rays_d"])
             key = jax.random.key(3)
             _, stats = deferred.render_image(fn, state.params, rays, index, owner, key, height, size)
             if not policy.update(site, {k: int(v) for k, v in stats.items()}, n_rays, n_samples):
                 break
         s = spec()
-        fn = embed.render_patch_fn(s, geometry, batch["id"])
+        fn = wm_step.render_patch_fn(s, geometry, batch["id"])
         target = batch["target"].reshape(height, size, 3)
-        image_loss = embed.make_image_loss(s, jax.random.key(4), batch["message"], target, dec_vars)
+        image_loss = wm_step.make_image_loss(s, jax.random.key(4), batch["message"], target, dec_vars)
 
         @jax.jit
         def direct(params: dict, dec_params: dict) -> tuple:
             def objective(p: dict, d: dict) -> jax.Array:
                 loss, _ = deferred.direct_objective(
-                    fn, image_loss, lambda r, t: embed.patch_loss(cfg, r, t), p, d,
+                    fn, image_loss, lambda r, t: wm_step.patch_loss(cfg, r, t), p, d,
                     (batch["rays_o"], batch["rays_d"]), batch["target"], index, owner, jax.random.key(5),
                     height, size,
                 )  # fmt: skip

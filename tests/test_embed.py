@@ -16,6 +16,7 @@ import pytest
 from mnerf_jax import deferred as D
 from mnerf_jax import dwt, wm_run
 from mnerf_jax import embed as E
+from mnerf_jax import wm_step as S
 from mnerf_jax.errors import MnerfError
 
 if TYPE_CHECKING:
@@ -215,7 +216,7 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
             image, targets.reshape(h, w, 3))
         return loss, {}
 
-    ploss = functools.partial(E.patch_loss, cfg)
+    ploss = functools.partial(S.patch_loss, cfg)
     layout = D.patch_layout(h, w, 11)
     index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
     _, _, image, g_params, g_dec = jax.jit(
@@ -250,9 +251,9 @@ def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_messag
 
     def loss_fn(lambda_clean: float, phase: int = 2):
         cfg = WatermarkConfig(augment_per_step=0, lambda_clean=lambda_clean)
-        spec = E.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
+        spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
                           width=24, density_budget=1, colour_budget=1)  # fmt: skip
-        return E.make_image_loss(spec, jax.random.PRNGKey(3), message, target, dec)
+        return S.make_image_loss(spec, jax.random.PRNGKey(3), message, target, dec)
 
     with_clean, without = loss_fn(0.5), loss_fn(0.0)
     clean_logits = decoder.apply_ll2(dec, dwt.ll2(target[None]))[0]
@@ -439,7 +440,7 @@ def test_optimizer_groups_and_learning_rates(variant: str) -> None:
     params, cfg = _wm_params(variant)
     dec = {"w": jnp.ones((3,))}
     tree = {"field": params, "decoder": dec}
-    labels = E.param_labels(tree, cfg)
+    labels = S.param_labels(tree, cfg)
     flat = {jax.tree_util.keystr(p): v for p, v in jax.tree_util.tree_leaves_with_path(labels)}
     density = {v for k, v in flat.items() if k.startswith("['field']['density']")}
     assert density == ({"frozen"} if variant == "frozen_geometry" else {"source_grid"})
@@ -453,7 +454,7 @@ def test_optimizer_groups_and_learning_rates(variant: str) -> None:
         assert {v for k, v in flat.items() if "['emb']" in k or "['mod']" in k} == {"embedding"}
     assert {v for k, v in flat.items() if k.startswith("['decoder']")} == {"decoder"}
     # One Adam step moves every trained leaf by about its group's learning rate; frozen leaves stay put.
-    tx = E.make_optimizer(cfg)
+    tx = S.make_optimizer(cfg)
     grads = jax.tree.map(jnp.ones_like, tree)
     updates, _ = tx.update(grads, tx.init(tree), tree)
     lr = {"grid": cfg.lr_grid, "network": cfg.lr_network, "embedding": cfg.lr_embedding,
@@ -468,10 +469,10 @@ def test_optimizer_groups_and_learning_rates(variant: str) -> None:
 def test_learning_rates_decay_exponentially() -> None:
     params, cfg = _wm_params("multinerf")
     tree = {"field": {"basis": params["basis"]}, "decoder": {}}
-    tx = E.make_optimizer(cfg)
+    tx = S.make_optimizer(cfg)
     state = tx.init(tree)
     grads = jax.tree.map(jnp.ones_like, tree)
-    total = E.total_steps(cfg)
+    total = S.total_steps(cfg)
     steps = []
     for _ in range(3):
         updates, state = tx.update(grads, state, tree)
@@ -485,7 +486,7 @@ def test_phases_and_step_choices_are_deterministic() -> None:
     from mnerf_jax.config import WatermarkConfig
 
     cfg = WatermarkConfig(phase1_steps=3, phase2_steps=2)
-    assert [E.phase_of(s, cfg) for s in range(5)] == [1, 1, 1, 2, 2]
+    assert [S.phase_of(s, cfg) for s in range(5)] == [1, 1, 1, 2, 2]
     picks = [E.step_choice(0, s, 4, 10) for s in range(400)]
     assert picks == [E.step_choice(0, s, 4, 10) for s in range(400)]
     ids = np.array([p[0] for p in picks])
@@ -499,8 +500,8 @@ def test_step_config_keeps_what_the_compiled_step_reads() -> None:
 
     base = WatermarkConfig(phase1_steps=40, phase2_steps=40)
     same = WatermarkConfig(phase1_steps=2, phase2_steps=78, seed=5, key_seed=3, checkpoint_every=7)
-    assert E.step_config(base) == E.step_config(same)
-    assert E.total_steps(E.step_config(base)) == 80
-    assert E.step_config(base) != E.step_config(WatermarkConfig(phase1_steps=40, phase2_steps=41))
+    assert S.step_config(base) == S.step_config(same)
+    assert S.total_steps(S.step_config(base)) == 80
+    assert S.step_config(base) != S.step_config(WatermarkConfig(phase1_steps=40, phase2_steps=41))
     heavier_rgb = WatermarkConfig(phase1_steps=40, phase2_steps=40, lambda_rgb=1.0)
-    assert E.step_config(base) != E.step_config(heavier_rgb)
+    assert S.step_config(base) != S.step_config(heavier_rgb)

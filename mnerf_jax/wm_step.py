@@ -1,0 +1,276 @@
+"""The compiled watermark-embedding step: its static spec, optimiser groups, losses and one jitted step.
+
+One step renders one training view with one ID's FiLM conditioning and back-propagates the two-phase
+objective by deferred back-propagation (:mod:`mnerf_jax.deferred`); :mod:`mnerf_jax.embed` drives it (the
+objective and the phases are described there).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import optax
+
+from mnerf_jax import augment, dwt, losses, render, watermark
+from mnerf_jax import decoder as decoder_lib
+from mnerf_jax import metrics as metrics_lib
+from mnerf_jax.config import ModelConfig, WatermarkConfig
+from mnerf_jax.deferred import PyTree, RenderFn, deferred_grad
+from mnerf_jax.wm_run import EmbedError
+
+
+@flax.struct.dataclass
+class EmbedState:
+    """Everything the jitted embedding step reads and writes.
+
+    Attributes:
+      params: the watermarked field (``watermark.add_watermark`` layout).
+      decoder: decoder variables ``{"params", "batch_stats"[, "pooling"]}``; only ``params`` train (phase 2),
+        BatchNorm keeps its running statistics (eval mode).
+      opt_state: optax state of :func:`make_optimizer` over ``{"field": params, "decoder": decoder params}``.
+      step: ``[]`` int32, steps completed (phase 1 then phase 2).
+      key: PRNG key of the run; step ``s`` uses ``fold_in(key, s)``.
+    """
+
+    params: PyTree
+    decoder: PyTree
+    opt_state: Any
+    step: jax.Array
+    key: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class StepSpec:
+    """The static part of one embedding step (hashable: one compilation per distinct value)."""
+
+    model: ModelConfig
+    wm: WatermarkConfig
+    adam_b1: float
+    adam_b2: float
+    phase: int
+    height: int
+    width: int
+    density_budget: int
+    colour_budget: int
+
+
+def total_steps(cfg: WatermarkConfig) -> int:
+    return int(cfg.phase1_steps) + int(cfg.phase2_steps)
+
+
+# Fields of WatermarkConfig that only the host loop reads (which step is in which phase, keys, seeds,
+# checkpoints, identification): the compiled step sees the learning-rate decay's length, not the split.
+_HOST_ONLY_FIELDS = (
+    "min_hamming", "key_seed", "checkpoint_every", "seed", "id_threshold", "keep_checkpoints",
+)  # fmt: skip
+
+
+def step_config(cfg: WatermarkConfig) -> WatermarkConfig:
+    """``cfg`` as :class:`StepSpec` holds it: host-only fields at their defaults and every step in one
+    phase count, so runs that differ only there share one compilation of :func:`embed_step` (the phase itself
+    is ``StepSpec.phase``)."""
+    defaults = WatermarkConfig()
+    host = {name: getattr(defaults, name) for name in _HOST_ONLY_FIELDS}
+    return dataclasses.replace(cfg, **host, phase1_steps=0, phase2_steps=total_steps(cfg))
+
+
+def phase_of(step: int, cfg: WatermarkConfig) -> int:
+    """1 for the first ``phase1_steps`` steps, 2 after."""
+    return 1 if step < cfg.phase1_steps else 2
+
+
+def param_labels(tree: PyTree, cfg: WatermarkConfig) -> PyTree:
+    """Optimiser group of every leaf of ``{"field": params, "decoder": decoder params}``.
+
+    ``grid``: the watermark VM factors (``lr_grid``); ``source_grid``: the fitted density and appearance
+    factors (``lr_grid · lr_source_scale``); ``embedding``: Emb and Mod (``lr_embedding``: each ID's row of
+    Emb only learns on the steps that draw that ID); ``network``: the MLP's extra rows and the position MLP
+    (``lr_network``); ``source_network``: the fitted basis and MLP (``lr_network · lr_source_scale``);
+    ``decoder`` (``lr_decoder``); ``frozen``: the density grid of the frozen_geometry variant.
+    """
+    density_label = "source_grid" if watermark.trains_density(cfg) else "frozen"
+
+    def field_label(path: tuple[Any, ...], _: Any) -> str:
+        names = [getattr(p, "key", getattr(p, "name", None)) for p in path]
+        top = names[0] if names else None
+        second = names[1] if len(names) > 1 else None
+        if top == "wm":
+            return "embedding" if second in ("emb", "mod") else "grid" if second == "grid" else "network"
+        if top == "density":
+            return density_label
+        if top == "appearance":
+            return "source_grid"
+        if top == "mlp" and second in ("out_extra", "in_extra"):
+            return "network"
+        return "source_network"
+
+    return {
+        "field": jax.tree_util.tree_map_with_path(field_label, tree["field"]),
+        "decoder": jax.tree.map(lambda _: "decoder", tree["decoder"]),
+    }
+
+
+def make_optimizer(
+    cfg: WatermarkConfig, adam_b1: float = 0.9, adam_b2: float = 0.99
+) -> optax.GradientTransformation:
+    """Adam per group with exponential decay ``lr · decay_ratio^(t / total_steps)``."""
+    total = max(total_steps(cfg), 1)
+
+    def group(lr: float) -> optax.GradientTransformation:
+        decay = float(cfg.lr_decay_ratio)
+        return optax.chain(
+            optax.scale_by_adam(b1=adam_b1, b2=adam_b2, eps=1e-8),
+            optax.scale_by_schedule(lambda count: -lr * decay ** (count / total)),
+        )
+
+    transforms = {
+        "grid": group(cfg.lr_grid),
+        "network": group(cfg.lr_network),
+        "source_grid": group(cfg.lr_grid * cfg.lr_source_scale),
+        "source_network": group(cfg.lr_network * cfg.lr_source_scale),
+        "decoder": group(cfg.lr_decoder),
+        "embedding": group(cfg.lr_embedding),
+        "frozen": optax.set_to_zero(),
+    }
+    return optax.multi_transform(transforms, functools.partial(param_labels, cfg=cfg))
+
+
+def render_patch_fn(spec: StepSpec, geometry: render.Geometry, index: jax.Array) -> RenderFn:
+    fns = watermark.field_fns(spec.model, spec.wm)
+
+    def render_fn(params: PyTree, rays: PyTree, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+        # (γ, β) once per call from the ID, not per sample; gradients reach Emb and Mod through them.
+        cond = watermark.condition(params, index, spec.wm)
+        out = render.render_rays(
+            fns, params, cond, rays[0], rays[1], geometry, key,
+            train=spec.wm.jitter, density_budget=spec.density_budget, colour_budget=spec.colour_budget,
+        )  # fmt: skip
+        return out["rgb"], {"density_count": out["density_count"], "colour_count": out["colour_count"]}
+
+    return render_fn
+
+
+def perceptual_loss(kind: str, image: jax.Array, reference: jax.Array, vgg_params: Any = None) -> jax.Array:
+    """Phase 1's perceptual term: Watson-DCT (default) or LPIPS-VGG."""
+    if kind == "watson":
+        return losses.watson_dct_loss(image, reference, chroma=True)
+    if kind == "vgg":
+        return losses.vgg_perceptual_loss(image, reference, vgg_params)
+    raise EmbedError(f"unknown watermark.perceptual {kind!r} (watson | vgg)")
+
+
+def patch_loss(cfg: WatermarkConfig, rgb: jax.Array, target: jax.Array) -> jax.Array:
+    """Phase 2's patch loss ``λ_rgb·L1 + λ_TV·TV + λ_SSIM·(1 − SSIM)`` on ``[S, S, 3]`` patches."""
+    loss = cfg.lambda_rgb * jnp.mean(jnp.abs(rgb - target))
+    if cfg.lambda_tv:
+        loss = loss + cfg.lambda_tv * losses.total_variation(rgb)
+    if cfg.lambda_ssim:
+        loss = loss + cfg.lambda_ssim * losses.ssim_loss(rgb, target)
+    return loss
+
+
+def make_image_loss(
+    spec: StepSpec,
+    key: jax.Array,
+    message: jax.Array,
+    target_image: jax.Array,
+    decoder_state: PyTree,
+    vgg_params: Any = None,
+) -> Callable[[jax.Array, PyTree], tuple[jax.Array, dict[str, jax.Array]]]:
+    """The image-level loss ``(image [H, W, 3], decoder params) -> (loss, {"bce", "perceptual"})``.
+
+    Phase 2: ``augment_per_step`` random augmentations (``key``) → LL2 → decoder → BCE(T) against
+    ``message [L]``, plus (``lambda_clean``) BCE(T) of the equally augmented ``target_image`` against ½.
+    Phase 1: no augmentation, plus the perceptual term against ``target_image``. ``decoder_state``: the
+    decoder's variables (BatchNorm statistics, pooling); their ``params`` are replaced by the argument.
+    """
+    cfg = spec.wm
+
+    def decode(image: jax.Array, dec_params: PyTree) -> jax.Array:
+        """Logits ``[L]`` of ``image [H, W, 3]`` as the decoder sees it (augmented in phase 2: the same key,
+        so the same augmentations with the same parameters for every image passed)."""
+        seen = image[None]
+        if spec.phase == 2 and cfg.augment_per_step > 0:
+            seen = augment.random_policy(key, seen, cfg.augment_strength, k=cfg.augment_per_step,
+                                         p=cfg.augment_prob)  # fmt: skip
+        variables = {**decoder_state, "params": dec_params}
+        return decoder_lib.apply_ll2(variables, dwt.ll2(seen, cfg.wavelet))[0]
+
+    def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
+        bce = losses.bce_with_logits(decode(image, dec_params), message, cfg.bce_temperature)
+        loss = cfg.lambda_message * bce
+        if spec.phase == 2 and cfg.lambda_clean:
+            clean_logits = decode(target_image, dec_params)
+            loss = loss + cfg.lambda_clean * losses.bce_with_logits(clean_logits, 0.5, cfg.bce_temperature)
+        perc = jnp.zeros((), jnp.float32)
+        if spec.phase == 1 and cfg.lambda_perceptual:
+            perc = perceptual_loss(cfg.perceptual, image, target_image, vgg_params)
+            loss = loss + cfg.lambda_perceptual * perc
+        return loss, {"bce": bce, "perceptual": perc}
+
+    return image_loss
+
+
+@functools.partial(jax.jit, static_argnames=("spec",))
+def embed_step(
+    state: EmbedState,
+    geometry: render.Geometry,
+    batch: dict[str, jax.Array],
+    layout_index: jax.Array,
+    layout_owner: jax.Array,
+    vgg_params: Any,
+    *,
+    spec: StepSpec,
+) -> tuple[EmbedState, dict[str, jax.Array]]:
+    """One optimisation step on one image rendered with one ID (deferred back-propagation).
+
+    batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [L]`` (0/1 float), ``id []`` int32.
+    Returns the new state and scalar metrics (loss terms, bit accuracy of the un-augmented render, PSNR,
+    largest per-patch sample counts).
+    """
+    cfg = spec.wm
+    h, w = spec.height, spec.width
+    key = jax.random.fold_in(state.key, state.step)
+    k_render, k_aug = jax.random.split(key)
+    message = batch["message"]
+    target_image = batch["target"].reshape(h, w, 3)
+    image_loss = make_image_loss(spec, k_aug, message, target_image, state.decoder, vgg_params)
+    ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
+    render_fn = render_patch_fn(spec, geometry, batch["id"])
+    loss, aux, image, g_field, g_dec = deferred_grad(
+        render_fn, image_loss, ploss, state.params, state.decoder["params"],
+        (batch["rays_o"], batch["rays_d"]), batch["target"], layout_index, layout_owner, k_render, h, w,
+    )  # fmt: skip
+    if spec.phase == 1:
+        g_dec = jax.tree.map(jnp.zeros_like, g_dec)  # the decoder is frozen in phase 1
+    grads = {"field": g_field, "decoder": g_dec}
+    values = {"field": state.params, "decoder": state.decoder["params"]}
+    tx = make_optimizer(cfg, spec.adam_b1, spec.adam_b2)
+    updates, opt_state = tx.update(grads, state.opt_state, values)
+    new_values = optax.apply_updates(values, updates)
+    # Bit accuracy of the render as it is (no augmentation), with the decoder before this update.
+    logits = decoder_lib.apply_ll2(state.decoder, dwt.ll2(image[None], cfg.wavelet))[0]
+    metrics = {
+        "loss": loss,
+        "loss_image": aux["loss_image"],
+        "loss_patch": aux["loss_patch"],
+        "bce": aux["bce"],
+        "perceptual": aux["perceptual"],
+        "bit_acc": jnp.mean(((logits > 0).astype(jnp.float32) == message).astype(jnp.float32)),
+        "psnr": metrics_lib.mse_to_psnr(jnp.mean(jnp.square(image - target_image))),
+        "density_count": aux["render_stats"]["density_count"],
+        "colour_count": aux["render_stats"]["colour_count"],
+    }
+    new_state = state.replace(
+        params=new_values["field"],
+        decoder={**state.decoder, "params": new_values["decoder"]},
+        opt_state=opt_state,
+        step=state.step + 1,
+    )
+    return new_state, metrics
