@@ -27,10 +27,11 @@ _CACHE_TO_REMOVE = pytest.StashKey[str]()
 def pytest_configure(config: pytest.Config) -> None:
     """One persistent XLA compilation cache for the whole test run, shared by the pytest-xdist workers.
 
-    Many tests compile the same programs (the embedding's phase-2 step with its 14 augmentations alone takes
-    ~40 s to compile), in both workers and in closures that jit's in-process cache cannot reuse. The cache
-    lives in a fresh temporary folder per run (removed at the end), so every run still compiles everything
-    once: it saves repeats, it hides nothing. Set ``MNERF_TEST_JAX_CACHE`` to a folder to keep it across runs.
+    Many tests compile the same programs (the embedding's phase-2 step with its 14 augmentations alone took
+    ~35 s to compile on the tiny scene), in both workers and in closures that jit's in-process cache cannot
+    reuse. The cache lives in a fresh temporary folder per run (removed at the end), so every run still
+    compiles everything once: it saves repeats, it hides nothing. Set ``MNERF_TEST_JAX_CACHE`` to a folder to
+    keep it across runs.
     """
     if JAX_CACHE_ENV not in os.environ and not hasattr(config, "workerinput"):
         # The controller (or a run without xdist) makes the folder; the workers inherit the variable.
