@@ -119,6 +119,9 @@ class WatermarkConfig:
     bce_temperature: float = 10.0
     perceptual: str = "watson"  # watson | vgg
     augment_strength: str = "low"
+    # Phase 2 draws its augmentations from these (names of augment.AUGMENTATIONS); empty: all 14, the paper's
+    # layer. A subset ablates the layer, or trains against the attacks a user expects.
+    augment_names: tuple[str, ...] = ()
     augment_per_step: int = 2
     augment_prob: float = 0.75
     lr_grid: float = 0.02

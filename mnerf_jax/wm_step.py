@@ -198,7 +198,7 @@ def make_image_loss(
         seen = image[None]
         if spec.phase == 2 and cfg.augment_per_step > 0:
             seen = augment.random_policy(key, seen, cfg.augment_strength, k=cfg.augment_per_step,
-                                         p=cfg.augment_prob)  # fmt: skip
+                                         p=cfg.augment_prob, names=cfg.augment_names or None)  # fmt: skip
         variables = {**decoder_state, "params": dec_params}
         return decoder_lib.apply_ll2(variables, dwt.ll2(seen, cfg.wavelet))[0]
 

@@ -137,6 +137,11 @@ TINY_EMBED = [
     # decoder of random_decoder (whitening gain ~1e3: tiny changes flip its bits); the CLI tests need a
     # strong watermark, not a realistic one.
     "watermark.lr_source_scale=1.0",
+    # Three of the 14 augmentations, filters that barely move a 32-px view's LL2: phase 2's step compiles in
+    # ~18 s instead of ~29 s, and the run identifies 12/12 test renders at 0.75 bits instead of 11/12 at 0.66
+    # (photometric subsets such as brightness, contrast, saturation left it at chance: this decoder's
+    # whitening gain makes any colour change a large one). The demo tests and test_augment run all 14.
+    "watermark.augment_names=gaussian_blur,box_blur,sharpness",
 ]  # fmt: skip
 
 

@@ -380,6 +380,10 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, m
           "model.mlp_width=64"], "may not change model"),
         ([*base, "--out", str(tmp_path / "o7"), "--num-ids", "2", "--bits", "8", "--set",
           "watermark.augment_strength=extreme"], "augment_strength"),
+        ([*base, "--out", str(tmp_path / "o8"), "--num-ids", "2", "--bits", "8", "--set",
+          "watermark.augment_names=jpeg,crop"], "unknown augmentation 'crop'"),
+        ([*base, "--out", str(tmp_path / "o9"), "--num-ids", "2", "--bits", "8", "--set",
+          "watermark.augment_names=jpeg"], "cannot be drawn from 1"),
         ([*base, "--out", str(tiny.wm), "--num-ids", "2", "--bits", "8"], "--resume"),
     ]  # fmt: skip
     for argv, message in cases:
@@ -387,7 +391,7 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, m
         assert code == 2, (argv, err)
         lines = [line for line in err.splitlines() if line.strip()]
         assert len(lines) == 1 and lines[0].startswith("mnerf: error:") and message in lines[0], err
-    for name in ("o1", "o2", "o3", "o4", "o5", "o6", "o7"):
+    for name in ("o1", "o2", "o3", "o4", "o5", "o6", "o7", "o8", "o9"):
         assert not (tmp_path / name).exists(), name
 
 
@@ -505,3 +509,30 @@ def test_step_config_keeps_what_the_compiled_step_reads() -> None:
     assert S.step_config(base) != S.step_config(WatermarkConfig(phase1_steps=40, phase2_steps=41))
     heavier_rgb = WatermarkConfig(phase1_steps=40, phase2_steps=40, lambda_rgb=1.0)
     assert S.step_config(base) != S.step_config(heavier_rgb)
+    fewer_attacks = WatermarkConfig(phase1_steps=40, phase2_steps=40, augment_names=("jpeg", "hue"))
+    assert S.step_config(fewer_attacks).augment_names == ("jpeg", "hue")
+
+
+def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.MonkeyPatch) -> None:
+    # watermark.augment_names reaches the policy inside the phase-2 image loss (traced, not run).
+    from mnerf_jax import augment, decoder
+    from mnerf_jax.config import ModelConfig, WatermarkConfig
+
+    seen: list[tuple[str, ...] | None] = []
+    real = augment.random_policy
+
+    def spy(key, images, strength="low", k=2, p=0.75, names=None):
+        seen.append(None if names is None else tuple(names))
+        return real(key, images, strength, k, p, names)
+
+    monkeypatch.setattr(augment, "random_policy", spy)
+    dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
+    image = jnp.full((16, 16, 3), 0.5)
+    for names, expect in (((), None), (("jpeg", "hue"), ("jpeg", "hue"))):
+        spec = S.StepSpec(model=ModelConfig(), wm=WatermarkConfig(augment_names=names), adam_b1=0.9,
+                          adam_b2=0.99, phase=2, height=16, width=16, density_budget=1,
+                          colour_budget=1)  # fmt: skip
+        loss = S.make_image_loss(spec, jax.random.PRNGKey(1), jnp.zeros(8), image, dec)
+        seen.clear()
+        jax.eval_shape(loss, image, dec["params"])
+        assert seen == [expect]
