@@ -330,6 +330,9 @@ def train_decoder(
         raise MnerfError(f"--decoder-init must be one of {choices}, got {cfg.decoder_init!r}")
     if cfg.size % 4 or cfg.size < 16:
         raise MnerfError(f"--size must be a multiple of 4 and at least 16, got {cfg.size}")
+    if cfg.encoder_channels < 1 or cfg.encoder_depth < 0:
+        raise MnerfError(f"--encoder-channels must be ≥ 1 and --encoder-depth ≥ 0, got {cfg.encoder_channels}"
+                         f" and {cfg.encoder_depth}")  # fmt: skip
     if cfg.decoder_from and (cfg.informed_steps or cfg.steps):
         raise MnerfError(
             "--decoder-from trains an encoder for a finished decoder: pass --informed-steps 0 --steps 0"

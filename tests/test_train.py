@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import TINY_SCHEDULE as TINY
 
-from mnerf_jax import grids, sampler, train
+from mnerf_jax import fit_step, grids, sampler, train
 from mnerf_jax.config import load_config
 from mnerf_jax.data import load_scene
 from mnerf_jax.errors import MnerfError
@@ -24,22 +24,22 @@ def tiny():
 
 def test_learning_rate_decays_to_ratio_and_resets():
     config = load_config("blender")
-    hyper = train.StepHyper.from_config(config)
-    assert train.learning_rates(hyper, 0, 0) == {"grid": 0.02, "network": 1e-3}
-    end = train.learning_rates(hyper, config.train.n_iters, 0)
+    hyper = fit_step.StepHyper.from_config(config)
+    assert fit_step.learning_rates(hyper, 0, 0) == {"grid": 0.02, "network": 1e-3}
+    end = fit_step.learning_rates(hyper, config.train.n_iters, 0)
     assert end["grid"] == pytest.approx(0.002, rel=1e-6) and end["network"] == pytest.approx(1e-4, rel=1e-6)
     # After a reset at step 2001 the rates start again from their initial values.
-    assert train.learning_rates(hyper, 2001, 2001)["grid"] == pytest.approx(0.02)
+    assert fit_step.learning_rates(hyper, 2001, 2001)["grid"] == pytest.approx(0.02)
     assert hyper.l1_switch == 2001
 
 
 def test_param_labels_split_grids_from_networks(tiny):
     config, _ = tiny
     params = train.init_state(config, tiny[1]).params
-    labels = jax.tree.leaves(train.param_labels(params))
+    labels = jax.tree.leaves(fit_step.param_labels(params))
     assert set(labels) == {"grid", "network"}
-    assert train.param_labels(params)["basis"] == "network"
-    assert set(jax.tree.leaves(train.param_labels(params)["density"])) == {"grid"}
+    assert fit_step.param_labels(params)["basis"] == "network"
+    assert set(jax.tree.leaves(fit_step.param_labels(params)["density"])) == {"grid"}
 
 
 def test_blender_voxel_schedule_is_log_linear_to_300():
@@ -106,7 +106,7 @@ def test_large_budgets_are_refitted_more_often_and_by_smaller_rungs():
 # -- the loop --------------------------------------------------------------------------------------
 
 
-def _state_leaves(state: train.TrainState) -> list[np.ndarray]:
+def _state_leaves(state: fit_step.TrainState) -> list[np.ndarray]:
     g = state.geometry
     return [np.asarray(x) for x in jax.tree.leaves((state.params, state.opt_state))] + [
         np.asarray(g.aabb),

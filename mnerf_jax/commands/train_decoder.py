@@ -108,6 +108,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.size,
         help=f"side of the training windows the decoder sees ({d.size}; encoded at +{d.crop_margin})",
     )
+    parser.add_argument(
+        "--encoder-channels",
+        type=int,
+        default=d.encoder_channels,
+        help=f"width of the HiDDeN encoder's convolutions ({d.encoder_channels})",
+    )
+    parser.add_argument(
+        "--encoder-depth",
+        type=int,
+        default=d.encoder_depth,
+        help=f"Conv-BN-ReLU blocks before the message joins the encoder's features ({d.encoder_depth})",
+    )
     parser.add_argument("--batch", type=int, default=d.batch, help=f"images per step ({d.batch})")
     parser.add_argument("--seed", type=int, default=d.seed, help=f"random seed ({d.seed})")
     parser.add_argument("--lr", type=float, default=d.lr, help=f"peak learning rate ({d.lr})")
@@ -139,6 +151,8 @@ def run(args: argparse.Namespace) -> int:
         lr_finetune=args.lr_finetune,
         decoder_from=str(args.decoder_from.resolve()) if args.decoder_from else "",
         size=args.size,
+        encoder_channels=args.encoder_channels,
+        encoder_depth=args.encoder_depth,
         batch=args.batch,
         seed=args.seed,
         lr=args.lr,
