@@ -475,6 +475,16 @@ def test_unknown_decoder_init_is_refused_before_anything_is_written(tmp_path: Pa
     assert not (tmp_path / "run" / "checkpoint.msgpack").exists()
 
 
+def test_encoder_size_comes_from_the_command_line_and_is_checked(tmp_path: Path, mnerf) -> None:
+    code, _, err = mnerf("train-decoder", "--bits", "8", "--out", tmp_path / "run", "--encoder-channels", "0")
+    assert code == 2 and "--encoder-channels must be ≥ 1" in err and not (tmp_path / "run").exists()
+    cfg = decoder_train.DecoderTrainConfig(bits=8, encoder_channels=8, encoder_depth=1)
+    encoder = decoder_train.init_state(cfg)[0]["encoder"]
+    kernels = [leaf.shape for path, leaf in jax.tree_util.tree_leaves_with_path(encoder["params"])
+               if "kernel" in jax.tree_util.keystr(path)]  # fmt: skip
+    assert len(kernels) == 1 + 2 + 1 and kernels[0][-1] == 8  # depth 1, two blocks after the message, 1×1 out
+
+
 def test_checkpoint_from_before_decoder_init_existed_reads_as_random(tmp_path: Path) -> None:
     import flax.serialization
 
