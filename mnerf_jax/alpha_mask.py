@@ -16,16 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from mnerf_jax import grids
-from mnerf_jax.render import (
-    Array,
-    FieldFns,
-    Geometry,
-    Params,
-    aabb_entry_exit,
-    alpha_mask_lookup,
-    jit_cpu_tuned,
-    sample_along_rays,
-)
+from mnerf_jax.raymarch import Geometry, aabb_entry_exit, alpha_mask_lookup, sample_along_rays
+from mnerf_jax.render import Array, FieldFns, Params, jit_cpu_tuned
 
 
 @jit_cpu_tuned(static_argnums=(0, 3, 5))

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mnerf_jax import render
+from mnerf_jax import raymarch
 
 if TYPE_CHECKING:
     from mnerf_jax.sampler import RaySet
@@ -274,16 +274,16 @@ def refit_due(step: int, phase_start: int, budgets: SampleBudgets | None = None)
 
 
 @functools.partial(jax.jit, static_argnames=("n_samples",))
-def _valid_samples_per_ray(rays_o: Array, rays_d: Array, geometry: render.Geometry, key: Array,
+def _valid_samples_per_ray(rays_o: Array, rays_d: Array, geometry: raymarch.Geometry, key: Array,
                            n_samples: int) -> Array:  # fmt: skip
     """``[R]`` int32: training samples of each ray inside the aabb and the alpha mask (density count)."""
-    t, _, _ = render.sample_along_rays(rays_o, rays_d, geometry, key, n_samples)
+    t, _, _ = raymarch.sample_along_rays(rays_o, rays_d, geometry, key, n_samples)
     xyz = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]
-    valid = render.inside_box(xyz, geometry.aabb) & render.alpha_mask_lookup(geometry, xyz)
+    valid = raymarch.inside_box(xyz, geometry.aabb) & raymarch.alpha_mask_lookup(geometry, xyz)
     return jnp.sum(valid, axis=-1, dtype=jnp.int32)
 
 
-def estimate_density_count(rays: RaySet, geometry: render.Geometry, batch: int, seed: int, salt: int,
+def estimate_density_count(rays: RaySet, geometry: raymarch.Geometry, batch: int, seed: int, salt: int,
                            probe: int = 8192) -> float:  # fmt: skip
     """A high quantile (mean + 4 sd) of a batch's density count, from ``probe`` random rays.
 

@@ -13,7 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from mnerf_jax.budgets import BudgetPolicy
-from mnerf_jax.render import Array, FieldFns, Geometry, Params, render_rays
+from mnerf_jax.raymarch import Geometry
+from mnerf_jax.render import Array, FieldFns, Params, render_rays
 
 
 def render_rays_exact(

@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from mnerf_jax import augment, budgets, decoder_io, dwt, grids, losses, render, watermark, wm_run
+from mnerf_jax import augment, budgets, decoder_io, dwt, grids, losses, raymarch, watermark, wm_run
 from mnerf_jax import config as config_lib
 from mnerf_jax import keys as keys_lib
 from mnerf_jax import run as runs
@@ -112,18 +112,18 @@ def check_rgb_images(images: np.ndarray, where: str) -> np.ndarray:
 # ------------------------------------------------------------------------------------- checkpoints
 
 
-def _checkpoint_tree(state: EmbedState, geometry: render.Geometry) -> dict[str, Any]:
+def _checkpoint_tree(state: EmbedState, geometry: raymarch.Geometry) -> dict[str, Any]:
     return {
         "params": state.params,
         "decoder": state.decoder,
         "opt_state": state.opt_state,
         "step": state.step,
         "key": jax.random.key_data(state.key),
-        "geometry": render.geometry_arrays(geometry),
+        "geometry": raymarch.geometry_arrays(geometry),
     }
 
 
-def _checkpoint_meta(config: Config, state: EmbedState, geometry: render.Geometry, keys: keys_lib.KeySet,
+def _checkpoint_meta(config: Config, state: EmbedState, geometry: raymarch.Geometry, keys: keys_lib.KeySet,
                      budgets: tuple[int, int]) -> dict[str, Any]:  # fmt: skip
     step = int(state.step)
     return {
@@ -134,7 +134,7 @@ def _checkpoint_meta(config: Config, state: EmbedState, geometry: render.Geometr
         "fingerprint": config_fingerprint(wm_run.fingerprint_config(config), wm_run.SECTIONS),
         "config": config.to_dict(),
         "resolution": list(grids.vm_resolution(state.params["density"])),
-        "geometry": render.geometry_meta(geometry),
+        "geometry": raymarch.geometry_meta(geometry),
         "num_ids": keys.num_ids,
         "bits": keys.bits,
         "budgets": [int(b) for b in budgets],
@@ -292,7 +292,7 @@ def embed(
                 step=jnp.asarray(tree["step"], jnp.int32),
                 key=jax.random.wrap_key_data(jnp.asarray(tree["key"], jnp.uint32)),
             )
-            geometry = render.geometry_from_checkpoint(tree["geometry"], meta["geometry"])
+            geometry = raymarch.geometry_from_checkpoint(tree["geometry"], meta["geometry"])
             _seed_budgets(policy, n_rays, n_samples, meta["budgets"])
         else:
             keys = keys_lib.generate_keys(num_ids, bits, cfg.min_hamming, cfg.key_seed, loaded.fingerprint)
@@ -338,7 +338,7 @@ class _Loop:
     split: Any
     keys: keys_lib.KeySet
     layout: PatchLayout
-    geometry: render.Geometry
+    geometry: raymarch.Geometry
     policy: budgets.BudgetPolicy
     store: CheckpointStore
     out: Path

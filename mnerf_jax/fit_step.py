@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from mnerf_jax import grids, render
+from mnerf_jax import grids, raymarch, render
 from mnerf_jax.config import Config
 
 Array = jax.Array
@@ -111,7 +111,7 @@ class TrainState:
       step: ``[]`` int32, steps completed.
       lr_base_step: ``[]`` int32, step at which the learning rates were last reset.
       key: PRNG key of the run; step ``s`` uses ``fold_in(key, s)``.
-      geometry: aabb, alpha mask, marching step, samples per ray (``render.Geometry``).
+      geometry: aabb, alpha mask, marching step, samples per ray (``raymarch.Geometry``).
     """
 
     params: Params
@@ -119,7 +119,7 @@ class TrainState:
     step: Array
     lr_base_step: Array
     key: Array
-    geometry: render.Geometry
+    geometry: raymarch.Geometry
 
     @property
     def resolution(self) -> tuple[int, int, int]:

@@ -157,7 +157,7 @@ class LoadedRun:
       config: the run's config.
       marker: ``run.json``.
       params: field params.
-      geometry: ``render.Geometry`` (aabb, alpha mask, samples per ray).
+      geometry: ``raymarch.Geometry`` (aabb, alpha mask, samples per ray).
       field_fns: ``render.FieldFns``.
       cond: conditioning pytree for ``field_fns.colour`` (None for TensoRF).
       step: the checkpoint's step.

@@ -11,7 +11,7 @@ import dataclasses
 
 import numpy as np
 
-from mnerf_jax import alpha_mask, render
+from mnerf_jax import alpha_mask, raymarch
 from mnerf_jax.data import Scene, all_rays
 from mnerf_jax.errors import MnerfError
 
@@ -57,7 +57,7 @@ class PermutationSampler:
         return self._cached[1][j * self.batch : (j + 1) * self.batch]
 
 
-def training_rays(scene: Scene, geometry: render.Geometry) -> RaySet:
+def training_rays(scene: Scene, geometry: raymarch.Geometry) -> RaySet:
     """All rays of the train split; for non-NDC scenes those missing the aabb are dropped."""
     origins, directions, rgb = all_rays("train", scene)
     if not scene.ndc:

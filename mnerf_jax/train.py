@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mnerf_jax import alpha_mask, field, grids, render
+from mnerf_jax import alpha_mask, field, grids, raymarch, render
 from mnerf_jax.budgets import SampleBudgets, estimate_density_count, refit_due
 from mnerf_jax.checkpoint import CheckpointStore, check_compatible, config_fingerprint
 from mnerf_jax.config import Config
@@ -80,9 +80,9 @@ def geometry_for(
     far: float,
     ndc: bool,
     white_bg: bool,
-) -> render.Geometry:
+) -> raymarch.Geometry:
     """A fresh geometry (no alpha mask) for ``resolution`` nodes over ``scene_aabb``."""
-    return render.make_geometry(
+    return raymarch.make_geometry(
         scene_aabb, resolution, step_ratio=config.render.step_ratio, near=near, far=far,
         distance_scale=config.model.distance_scale, ndc=ndc, white_bg=white_bg,
         max_samples=config.render.max_samples,
@@ -140,7 +140,7 @@ def update_alpha_mask(
         geometry = geometry_for(config, aligned, grids.vm_resolution(params["density"]),
                                 near=float(geometry.near), far=float(geometry.far), ndc=geometry.ndc,
                                 white_bg=geometry.white_bg)  # fmt: skip
-    geometry = render.with_alpha_mask(geometry, mask, old_aabb)
+    geometry = raymarch.with_alpha_mask(geometry, mask, old_aabb)
     return state.replace(params=params, opt_state=opt_state, geometry=geometry)
 
 
@@ -176,7 +176,7 @@ def _checkpoint_tree(state: TrainState, ray_keep: np.ndarray | None) -> dict[str
         "step": state.step,
         "lr_base_step": state.lr_base_step,
         "key": jax.random.key_data(state.key),
-        "geometry": render.geometry_arrays(state.geometry),
+        "geometry": raymarch.geometry_arrays(state.geometry),
         # Packed keep-bits of the ray filter (training rays after the bbox drop); a placeholder byte
         # before it (orbax cannot store empty arrays).
         "ray_keep": np.packbits(ray_keep) if ray_keep is not None else np.zeros((1,), np.uint8),
@@ -195,7 +195,7 @@ def state_target(config: Config, meta: Mapping[str, Any]) -> dict[str, Any]:
         "step": jax.ShapeDtypeStruct((), jnp.int32),
         "lr_base_step": jax.ShapeDtypeStruct((), jnp.int32),
         "key": jax.ShapeDtypeStruct((2,), jnp.uint32),
-        "geometry": dict.fromkeys(render.GEOMETRY_ARRAYS, scalar),
+        "geometry": dict.fromkeys(raymarch.GEOMETRY_ARRAYS, scalar),
         "ray_keep": jax.ShapeDtypeStruct((1,), jnp.uint8),
     }
 
@@ -204,7 +204,7 @@ def state_from_checkpoint(
     tree: Mapping[str, Any], meta: Mapping[str, Any]
 ) -> tuple[TrainState, np.ndarray | None]:
     """``(TrainState, ray keep-mask or None)`` from a restored checkpoint tree and its meta."""
-    geometry = render.geometry_from_checkpoint(tree["geometry"], meta["geometry"])
+    geometry = raymarch.geometry_from_checkpoint(tree["geometry"], meta["geometry"])
     as_jnp = functools.partial(jax.tree.map, jnp.asarray)
     state = TrainState(
         params=as_jnp(tree["params"]),
@@ -406,7 +406,7 @@ class _Trainer:
             "config": self.config.to_dict(),
             "resolution": list(self.state.resolution),
             "mask_resolution": list(self.mask_resolution),
-            "geometry": render.geometry_meta(self.state.geometry),
+            "geometry": raymarch.geometry_meta(self.state.geometry),
             "budgets": self.budgets.to_dict(),
             "phase_start": self.phase_start,
             "ray_keep_count": None if self.ray_keep is None else int(self.ray_keep.sum()),

@@ -21,7 +21,7 @@ import optax
 
 from mnerf_jax import config as config_lib
 from mnerf_jax import decoder as decoder_lib
-from mnerf_jax import decoder_io, field, render, watermark
+from mnerf_jax import decoder_io, field, raymarch, watermark
 from mnerf_jax import keys as keys_lib
 from mnerf_jax import run as runs
 from mnerf_jax.checkpoint import CheckpointStore
@@ -76,7 +76,7 @@ def state_target(
         "decoder": dec,
         "step": jax.ShapeDtypeStruct((), jnp.int32),
         "key": jax.ShapeDtypeStruct((2,), jnp.uint32),
-        "geometry": dict.fromkeys(render.GEOMETRY_ARRAYS, scalar),
+        "geometry": dict.fromkeys(raymarch.GEOMETRY_ARRAYS, scalar),
     }
     if optimizer is not None:
         values = {"field": params, "decoder": dec["params"]}
@@ -124,7 +124,7 @@ def _load_multinerf(
     params = jax.tree.map(jnp.asarray, tree["params"])
     loaded = runs.LoadedRun(
         run_dir=run_dir, kind=WM_KIND, config=config, marker=marker, params=params,
-        geometry=render.geometry_from_checkpoint(tree["geometry"], meta["geometry"]),
+        geometry=raymarch.geometry_from_checkpoint(tree["geometry"], meta["geometry"]),
         field_fns=watermark.field_fns(config.model, config.watermark), cond=None, step=int(meta["step"]),
         meta=meta,
         extras={"keys": keys, "decoder": dec, "num_ids": keys.num_ids, "id": None,

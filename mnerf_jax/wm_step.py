@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from mnerf_jax import augment, dwt, losses, render, watermark
+from mnerf_jax import augment, dwt, losses, raymarch, render, watermark
 from mnerf_jax import decoder as decoder_lib
 from mnerf_jax import metrics as metrics_lib
 from mnerf_jax.config import ModelConfig, WatermarkConfig
@@ -141,7 +141,7 @@ def make_optimizer(
     return optax.multi_transform(transforms, functools.partial(param_labels, cfg=cfg))
 
 
-def render_patch_fn(spec: StepSpec, geometry: render.Geometry, index: jax.Array) -> RenderFn:
+def render_patch_fn(spec: StepSpec, geometry: raymarch.Geometry, index: jax.Array) -> RenderFn:
     fns = watermark.field_fns(spec.model, spec.wm)
 
     def render_fn(params: PyTree, rays: PyTree, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
@@ -220,7 +220,7 @@ def make_image_loss(
 @functools.partial(jax.jit, static_argnames=("spec",))
 def embed_step(
     state: EmbedState,
-    geometry: render.Geometry,
+    geometry: raymarch.Geometry,
     batch: dict[str, jax.Array],
     layout_index: jax.Array,
     layout_owner: jax.Array,

@@ -39,7 +39,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.scipy.ndimage import map_coordinates  # noqa: E402
 
-from mnerf_jax import alpha_mask, budgets, field, grids, render  # noqa: E402
+from mnerf_jax import alpha_mask, budgets, field, grids, raymarch, render  # noqa: E402
 from mnerf_jax.config import ModelConfig  # noqa: E402
 
 
@@ -147,11 +147,11 @@ def bench_render(repeats: int, options: dict, res: int = 128, rays: int = 4096) 
     fns = render.tensorf_field_fns(cfg)
     params = ball_field(cfg, res)
     aabb = np.array([[-1.5] * 3, [1.5] * 3], np.float32)
-    geo = render.make_geometry(aabb, (res, res, res), distance_scale=cfg.distance_scale)
+    geo = raymarch.make_geometry(aabb, (res, res, res), distance_scale=cfg.distance_scale)
     t0 = time.perf_counter()
     mask = alpha_mask.compute_alpha_mask(fns, params, geo, (res, res, res))
     mask_s = time.perf_counter() - t0
-    masked = render.with_alpha_mask(geo, mask, geo.aabb)
+    masked = raymarch.with_alpha_mask(geo, mask, geo.aabb)
     rays_o, rays_d = orbit_rays(rays, 0)
     target = jnp.full((rays, 3), 0.5, jnp.float32)
     key = jax.random.PRNGKey(0)

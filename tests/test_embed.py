@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from mnerf_jax import deferred as D
-from mnerf_jax import dwt, wm_run
+from mnerf_jax import dwt, raymarch, wm_run
 from mnerf_jax import embed as E
 from mnerf_jax import wm_step as S
 from mnerf_jax.errors import MnerfError
@@ -193,7 +193,7 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
     params = watermark.add_watermark(jax.random.PRNGKey(1), base, cfg, 3, extra_scale=0.3)
     fns = watermark.field_fns(model, cfg)
     # Semi-transparent matter (σ ≈ 2, Δt = 0.3, distance scale 1): every sample gets gradient.
-    geometry = render.make_geometry(np.array([[-1.5] * 3, [1.5] * 3]), (6, 6, 6), n_samples=24,
+    geometry = raymarch.make_geometry(np.array([[-1.5] * 3, [1.5] * 3]), (6, 6, 6), n_samples=24,
                                     distance_scale=1.0)  # fmt: skip
     h, w = 13, 12
     ys, xs = jnp.meshgrid(jnp.linspace(-0.35, 0.35, h), jnp.linspace(-0.35, 0.35, w), indexing="ij")

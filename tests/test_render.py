@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import alpha_mask, budgets, chunked, field, grids, render
+from mnerf_jax import alpha_mask, budgets, chunked, field, grids, raymarch, render
 from mnerf_jax.config import ModelConfig
 
 SETTINGS = settings(max_examples=10, deadline=None)
@@ -146,7 +146,7 @@ def test_scan_and_cumsum_gradients_agree():
 
 
 def _slab_geometry(n_samples=200, ndc=False):
-    geo = render.make_geometry(CUBE, (64, 64, 64), near=0.0, far=10.0, ndc=ndc, n_samples=n_samples)
+    geo = raymarch.make_geometry(CUBE, (64, 64, 64), near=0.0, far=10.0, ndc=ndc, n_samples=n_samples)
     return geo
 
 
@@ -187,7 +187,7 @@ def test_slab_opacity(seed, m, sigma):
 
 
 def test_ndc_slab_scales_distances_by_direction_norm():
-    geo = render.make_geometry(
+    geo = raymarch.make_geometry(
         np.array([[-1.5, -1.67, -1.0], [1.5, 1.67, 1.0]]),
         (32, 32, 32),
         near=0.0,
@@ -216,19 +216,19 @@ def test_ndc_slab_scales_distances_by_direction_norm():
 def test_sample_along_rays_bounded_and_ndc():
     geo = _slab_geometry(n_samples=50)
     rays_o, rays_d = camera_rays(5)
-    t, dists, vd = render.sample_along_rays(rays_o, rays_d, geo, None)
-    t_in, _ = render.aabb_entry_exit(rays_o, rays_d, geo.aabb)
+    t, dists, vd = raymarch.sample_along_rays(rays_o, rays_d, geo, None)
+    t_in, _ = raymarch.aabb_entry_exit(rays_o, rays_d, geo.aabb)
     np.testing.assert_allclose(np.asarray(t[:, 0]), np.clip(np.asarray(t_in), 0.0, 10.0), rtol=1e-6)
     np.testing.assert_allclose(np.diff(np.asarray(t), axis=-1), float(geo.step_size), rtol=1e-4)
     assert np.all(np.asarray(dists[:, -1]) == 0)
-    tj, _, _ = render.sample_along_rays(rays_o, rays_d, geo, jax.random.PRNGKey(0))
+    tj, _, _ = raymarch.sample_along_rays(rays_o, rays_d, geo, jax.random.PRNGKey(0))
     shift = np.asarray(tj - t) / float(geo.step_size)
     assert np.all((shift >= 0) & (shift < 1))
     np.testing.assert_allclose(shift, np.broadcast_to(shift[:, :1], shift.shape), atol=1e-3)  # one per ray
     assert np.ptp(shift[:, 0]) > 0
     # NDC: one jitter row shared by all rays.
-    ndc = render.make_geometry(CUBE, (8, 8, 8), near=0.0, far=1.0, ndc=True, n_samples=16)
-    tn, _, vdn = render.sample_along_rays(rays_o, 2.0 * rays_d, ndc, jax.random.PRNGKey(1))
+    ndc = raymarch.make_geometry(CUBE, (8, 8, 8), near=0.0, far=1.0, ndc=True, n_samples=16)
+    tn, _, vdn = raymarch.sample_along_rays(rays_o, 2.0 * rays_d, ndc, jax.random.PRNGKey(1))
     np.testing.assert_allclose(np.asarray(tn), np.asarray(tn[:1]).repeat(5, 0))
     base = np.linspace(0, 1, 16)
     assert np.all((np.asarray(tn[0]) - base >= 0) & (np.asarray(tn[0]) - base < 1 / 16))
@@ -401,7 +401,7 @@ def test_alpha_mask_skips_empty_space_and_keeps_the_image():
     nodes = np.stack(np.meshgrid(*[np.linspace(-1, 1, 24)] * 3, indexing="ij"), -1)
     r = np.linalg.norm(nodes, axis=-1)
     assert np.all(mask[r < 0.38]) and not np.any(mask[r > 0.4 + 2 * np.sqrt(3) * 2 / 23])
-    masked = render.with_alpha_mask(geo, mask, geo.aabb)
+    masked = raymarch.with_alpha_mask(geo, mask, geo.aabb)
     rays_o, rays_d = camera_rays(64)
     before = _render(SPHERE, params, geo, rays_o, rays_d, None, None)
     after = _render(SPHERE, params, masked, rays_o, rays_d, None, None)
@@ -465,7 +465,7 @@ def test_geometry_is_a_pytree_with_static_shape_fields():
     rebuilt = jax.tree_util.tree_unflatten(treedef, leaves)
     assert rebuilt.n_samples == 33 and rebuilt.white_bg and not rebuilt.ndc
     with pytest.raises(ValueError):
-        render.with_alpha_mask(geo, np.ones((1, 4, 4), bool), CUBE)
+        raymarch.with_alpha_mask(geo, np.ones((1, 4, 4), bool), CUBE)
 
 
 @pytest.mark.parametrize("count", [0, 5, 16, 17, 40, 64])

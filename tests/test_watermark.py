@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mnerf_jax import alpha_mask, field, grids, render
+from mnerf_jax import alpha_mask, field, grids, raymarch, render
 from mnerf_jax import watermark as W
 from mnerf_jax.config import ModelConfig, WatermarkConfig
 from mnerf_jax.errors import MnerfError
@@ -167,7 +167,7 @@ def test_field_fns_render_differs_by_id() -> None:
     params["density"] = jax.tree.map(lambda a: a + 1.0, params["density"])
     fns = W.field_fns(MODEL, cfg)
     assert fns == W.field_fns(MODEL, dataclasses.replace(cfg))  # hashable, equal: shared compilation
-    geometry = render.make_geometry(np.array([[-1.5] * 3, [1.5] * 3]), RES, n_samples=32)
+    geometry = raymarch.make_geometry(np.array([[-1.5] * 3, [1.5] * 3]), RES, n_samples=32)
     o = jnp.tile(jnp.array([[0.0, 0.0, -4.0]]), (16, 1))
     dirs = jnp.concatenate([jnp.linspace(-0.2, 0.2, 16)[:, None], jnp.zeros((16, 1)), jnp.ones((16, 1))], -1)
     dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
