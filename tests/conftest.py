@@ -140,7 +140,8 @@ TINY_EMBED = [
     # Three of the 14 augmentations, filters that barely move a 32-px view's LL2: phase 2's step compiles in
     # ~18 s instead of ~29 s, and the run identifies 12/12 test renders at 0.75 bits instead of 11/12 at 0.66
     # (photometric subsets such as brightness, contrast, saturation left it at chance: this decoder's
-    # whitening gain makes any colour change a large one). The demo tests and test_augment run all 14.
+    # whitening gain makes any colour change a large one). test_augment compiles and differentiates the
+    # policy over all 14; test_embed checks that the empty default hands the step the whole registry.
     "watermark.augment_names=gaussian_blur,box_blur,sharpness",
 ]  # fmt: skip
 
