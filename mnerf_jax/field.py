@@ -19,7 +19,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from mnerf_jax import grids
+from mnerf_jax import grid_volume, grids
 from mnerf_jax.config import ModelConfig
 
 Array = jax.Array
@@ -83,12 +83,12 @@ def density_activation(feature: Array, cfg: ModelConfig) -> Array:
 
 def density(params: Params, xyz: Array, cfg: ModelConfig) -> Array:
     """Volume density σ ``[P]`` (per unit length before the distance scale) at normalised ``xyz [P, 3]``."""
-    return density_activation(grids.sample_vm_sum(params["density"], xyz), cfg)
+    return density_activation(grid_volume.sample_vm_sum(params["density"], xyz), cfg)
 
 
 def appearance_features(params: Params, xyz: Array) -> Array:
     """Appearance features ``[P, app_features]``: VM component products through the basis matrix."""
-    return grids.sample_vm_projected(params["appearance"], params["basis"], xyz)
+    return grid_volume.sample_vm_projected(params["appearance"], params["basis"], xyz)
 
 
 # pi/2 split into three float32 parts (Cody-Waite): q * _PIO2[0] is exact for |q| < 2^15.

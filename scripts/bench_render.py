@@ -5,7 +5,7 @@
    ``jax.scipy.ndimage.map_coordinates`` (1 M points x 16 components, 128^2 plane).
 3. The density feature (sum of a rank-16 x 3 VM grid's component products), forward and
    forward+backward, at points along random rays: per-mode gathers vs the dense trilinear volume
-   vs the default (gather forward, volume backward; ``grids.sample_vm_sum``), at 128^3 and 300^3
+   vs the default (gather forward, volume backward; ``grid_volume.sample_vm_sum``), at 128^3 and 300^3
    with 0.52 M and 1.57 M points.
 4. The colour MLP (TensoRF's MLP_Fea, 150 -> 128 -> 128 -> 3) forward+backward at 1 M points, in
    float32 and with bfloat16 operands, beside a 4096^3 float32 matrix product (the machine's matmul
@@ -39,7 +39,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.scipy.ndimage import map_coordinates  # noqa: E402
 
-from mnerf_jax import alpha_mask, budgets, field, grids, raymarch, render  # noqa: E402
+from mnerf_jax import alpha_mask, budgets, field, grid_volume, grids, raymarch, render  # noqa: E402
 from mnerf_jax.config import ModelConfig  # noqa: E402
 
 
@@ -231,15 +231,16 @@ def points_along_rays(key: jax.Array, rays: int, samples: int, res: int) -> jax.
 
 
 def bench_density(repeats: int, options: dict) -> dict[str, float]:
-    """``grids.sample_vm_sum`` by method, grid size and point count."""
+    """``grid_volume.sample_vm_sum`` by method, grid size and point count."""
     out: dict[str, float] = {}
     for res in (128, 300):
         grid = grids.init_vm(jax.random.PRNGKey(0), (res, res, res), (16, 16, 16), 0.1)
         for points in (524_288, 1_572_864):
             xyz = points_along_rays(jax.random.PRNGKey(1), points // 384, 384, res)
             for method in ("gather", "volume", "auto"):
-                fwd = jax.jit(lambda g, x, m=method: grids.sample_vm_sum(g, x, m), compiler_options=options)
-                loss = lambda g, x, m=method: jnp.sum(jnp.sin(grids.sample_vm_sum(g, x, m)))
+                fwd = jax.jit(lambda g, x, m=method: grid_volume.sample_vm_sum(g, x, m),
+                              compiler_options=options)
+                loss = lambda g, x, m=method: jnp.sum(jnp.sin(grid_volume.sample_vm_sum(g, x, m)))
                 grad = jax.jit(jax.grad(loss), compiler_options=options)
                 name = f"density_{method}_{res}^3_{points // 1000}k"
                 out[f"{name}_fwd_ms"] = 1e3 * best_time(lambda f=fwd, g=grid, x=xyz: f(g, x), repeats)

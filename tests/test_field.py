@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import field, grids
+from mnerf_jax import field, grid_volume, grids
 from mnerf_jax.config import ModelConfig
 
 CFG = ModelConfig()
@@ -111,7 +111,7 @@ def test_init_field_shapes_and_torch_init():
 def test_density_activation_and_features():
     params = field.init_field(jax.random.PRNGKey(3), SMALL, (5, 6, 7))
     xyz = jax.random.uniform(jax.random.PRNGKey(4), (9, 3), minval=-1, maxval=1)
-    feature = jax.jit(grids.sample_vm_sum)(params["density"], xyz)
+    feature = jax.jit(grid_volume.sample_vm_sum)(params["density"], xyz)
     sigma = density(params, xyz, SMALL)
     np.testing.assert_allclose(np.asarray(sigma), np.log1p(np.exp(np.asarray(feature) - 10.0)), rtol=1e-5)
     relu_cfg = dataclasses.replace(SMALL, density_activation="relu")

@@ -11,13 +11,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import grids
+from mnerf_jax import grid_volume, grids
 
 SETTINGS = settings(max_examples=10, deadline=None)
 
 # Jitted once per shape: eager op-by-op dispatch would compile every primitive for every new shape.
 sample_vm = jax.jit(grids.sample_vm)
-sample_vm_sum = jax.jit(grids.sample_vm_sum)
+sample_vm_sum = jax.jit(grid_volume.sample_vm_sum)
 upsample_vm = jax.jit(grids.upsample_vm, static_argnums=1)
 
 
@@ -257,7 +257,7 @@ def test_density_volume_path_equals_gather_path(res, ranks, seed):
     cot = jnp.asarray(np.random.default_rng(seed + 1).normal(size=96), jnp.float32)
 
     def value_and_grad(method):
-        return jax.value_and_grad(lambda g: jnp.sum(cot * grids.sample_vm_sum(g, xyz, method)))(grid)
+        return jax.value_and_grad(lambda g: jnp.sum(cot * grid_volume.sample_vm_sum(g, xyz, method)))(grid)
 
     by_gather = jax.jit(lambda: value_and_grad("gather"))()
     # 96 points: "auto" takes the volume's backward pass on these grids.
@@ -279,10 +279,10 @@ def test_projected_volume_backward_equals_gather_path(res, ranks, seed):
     xyz = jnp.asarray(rng.uniform(-1.6, 1.6, (128, 3)), jnp.float32)
     cot = jnp.asarray(rng.normal(size=(128, 5)), jnp.float32)
     cells = int(np.prod(res))
-    assert cells <= grids.PROJECTED_CELLS_PER_POINT * 128  # "auto" takes the volume's backward pass
+    assert cells <= grid_volume.PROJECTED_CELLS_PER_POINT * 128  # "auto" takes the volume's backward pass
 
     def value_and_grad(method):
-        fn = lambda g, b: jnp.sum(cot * grids.sample_vm_projected(g, b, xyz, method))  # noqa: E731
+        fn = lambda g, b: jnp.sum(cot * grid_volume.sample_vm_projected(g, b, xyz, method))  # noqa: E731
         return jax.value_and_grad(fn, argnums=(0, 1))(grid, basis)
 
     want = jax.jit(lambda: value_and_grad("gather"))()
@@ -300,7 +300,7 @@ def test_splat_volume_is_the_transpose_of_trilinear_sampling(res, seed):
     xyz = jnp.asarray(rng.uniform(-1.6, 1.6, (64, 3)), jnp.float32)
     values = jnp.asarray(rng.normal(size=(64, 3)), jnp.float32)
     volume = jnp.asarray(rng.normal(size=(*res, 3)), jnp.float32)
-    splat = grids.splat_volume(values, xyz, tuple(res)).reshape(*res, 3)
+    splat = grid_volume.splat_volume(values, xyz, tuple(res)).reshape(*res, 3)
     lhs = float(jnp.sum(splat * volume))
-    rhs = float(jnp.sum(values * grids.sample_volume(volume, xyz)))
+    rhs = float(jnp.sum(values * grid_volume.sample_volume(volume, xyz)))
     assert lhs == pytest.approx(rhs, rel=1e-4, abs=1e-3)
