@@ -2,16 +2,26 @@
 # Train the two shipped HiDDeN decoders (16 and 48 bits) and copy them, with their check batches, into the
 # package. Usage: scripts/train_decoders.sh [OUT_DIR] [extra train-decoder flags, e.g. --images ~/coco/train2014]
 # A killed run continues where it stopped when the script is run again (the runs are resumed).
+# The 16-bit decoder then gets a wider, deeper HiDDeN encoder refitted for it (the decoder is copied unchanged;
+# its recorded held-out figures become the new encoder's: docs/decoders.md, "The encoder refit").
 set -euo pipefail
 out="${1:-decoder-runs}"
 shift || true
 assets="$(dirname "$0")/../mnerf_jax/assets/decoders"
 mkdir -p "$out" "$assets"
+resume_flag() { if [[ -f "$1/checkpoint.msgpack" ]]; then echo --resume; fi; }
 for bits in 16 48; do
   run="$out/l$bits"
-  resume=()
-  if [[ -f "$run/checkpoint.msgpack" ]]; then resume=(--resume); fi
-  mnerf train-decoder --bits "$bits" --out "$run" --informed-steps 4000 --steps 0 --finetune-steps 5000 "${resume[@]}" "$@"
+  # shellcheck disable=SC2046
+  mnerf train-decoder --bits "$bits" --out "$run" --informed-steps 4000 --steps 0 --finetune-steps 5000 \
+    $(resume_flag "$run") "$@"
+  if [[ "$bits" == 16 ]]; then
+    refit="$out/l${bits}_refit"
+    # shellcheck disable=SC2046
+    mnerf train-decoder --bits "$bits" --out "$refit" --informed-steps 0 --steps 0 --finetune-steps 5000 \
+      --decoder-from "$run/decoder.npz" --encoder-channels 64 --encoder-depth 4 $(resume_flag "$refit") "$@"
+    run="$refit"
+  fi
   cp "$run/decoder.npz" "$assets/hidden_l$bits.npz"
   cp "$run/check.npz" "$assets/hidden_l${bits}_check.npz"
 done
