@@ -424,7 +424,8 @@ def apply(name: str, key: jax.Array, images: jax.Array, strength: str = "low") -
     return AUGMENTATIONS[name](key, images, strength)
 
 
-def _resolve(names: Sequence[str] | None, k: int) -> tuple[str, ...]:
+def resolve_names(names: Sequence[str] | None, k: int) -> tuple[str, ...]:
+    """The names a policy draws ``k`` distinct augmentations from (default: all 14), or AugmentError."""
     names = AUGMENTATION_NAMES if names is None else tuple(names)
     for name in names:
         _check_name(name)
@@ -441,7 +442,7 @@ def policy_choices(
     """The augmentations :func:`random_policy` applies for ``key``: ``[k]`` int32 indices into ``names``
     (default :data:`AUGMENTATION_NAMES`), distinct, in application order, ``-1`` where the Bernoulli(``p``)
     draw skipped that slot."""
-    names = _resolve(names, k)
+    names = resolve_names(names, k)
     k_pick, k_apply = jax.random.split(jax.random.fold_in(key, 0))
     picked = jax.random.choice(k_pick, len(names), (k,), replace=False)
     applied = jax.random.bernoulli(k_apply, p, (k,))
@@ -464,7 +465,7 @@ def random_policy(
     branch is the identity), so a single compiled function covers every choice and only the chosen branch
     runs. (A scan over the slots was measured slower to run and no faster to compile.)
     """
-    names = _resolve(names, k)
+    names = resolve_names(names, k)
     _check_strength(strength)
     choices = policy_choices(key, k, p, names)
     branches = [functools.partial(AUGMENTATIONS[n], strength=strength) for n in names]

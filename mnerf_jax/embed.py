@@ -178,14 +178,10 @@ def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequen
     if cfg.augment_strength not in augment.STRENGTHS:
         raise EmbedError(f"unknown watermark.augment_strength {cfg.augment_strength!r} "
                          f"({' | '.join(augment.STRENGTHS)})")  # fmt: skip
-    unknown = [n for n in cfg.augment_names if n not in augment.AUGMENTATIONS]
-    if unknown:
-        raise EmbedError(f"unknown augmentation {', '.join(map(repr, unknown))} in watermark.augment_names "
-                         f"(known: {', '.join(augment.AUGMENTATION_NAMES)})")  # fmt: skip
-    pool = len(cfg.augment_names) or len(augment.AUGMENTATION_NAMES)
-    if len(set(cfg.augment_names)) != len(cfg.augment_names) or not 0 <= cfg.augment_per_step <= pool:
-        raise EmbedError(f"watermark.augment_per_step={cfg.augment_per_step} distinct augmentations cannot "
-                         f"be drawn from {pool} (watermark.augment_names, no repeats)")  # fmt: skip
+    try:
+        augment.resolve_names(cfg.augment_names or None, cfg.augment_per_step)
+    except augment.AugmentError as err:
+        raise EmbedError(f"watermark.augment_names / augment_per_step: {err}") from None
     if cfg.wavelet not in dwt.DEC_LO:
         raise EmbedError(f"unknown watermark.wavelet {cfg.wavelet!r} ({' | '.join(dwt.DEC_LO)})")
     if total_steps(config.watermark) < 1:

@@ -383,7 +383,7 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, m
         ([*base, "--out", str(tmp_path / "o8"), "--num-ids", "2", "--bits", "8", "--set",
           "watermark.augment_names=jpeg,crop"], "unknown augmentation 'crop'"),
         ([*base, "--out", str(tmp_path / "o9"), "--num-ids", "2", "--bits", "8", "--set",
-          "watermark.augment_names=jpeg"], "cannot be drawn from 1"),
+          "watermark.augment_names=jpeg"], "cannot draw 2 distinct augmentations from 1"),
         ([*base, "--out", str(tiny.wm), "--num-ids", "2", "--bits", "8"], "--resume"),
     ]  # fmt: skip
     for argv, message in cases:
