@@ -2,7 +2,7 @@
 # Train the two shipped HiDDeN decoders (16 and 48 bits) and copy them, with their check batches, into the
 # package. Usage: scripts/train_decoders.sh [OUT_DIR] [extra train-decoder flags, e.g. --images ~/coco/train2014]
 # A killed run continues where it stopped when the script is run again (the runs are resumed).
-# The 16-bit decoder then gets a wider, deeper HiDDeN encoder refitted for it (the decoder is copied unchanged;
+# Each decoder then gets a wider, deeper HiDDeN encoder refitted for it (the decoder is copied unchanged;
 # its recorded held-out figures become the new encoder's: docs/decoders.md, "The encoder refit").
 set -euo pipefail
 out="${1:-decoder-runs}"
@@ -15,13 +15,11 @@ for bits in 16 48; do
   # shellcheck disable=SC2046
   mnerf train-decoder --bits "$bits" --out "$run" --informed-steps 4000 --steps 0 --finetune-steps 5000 \
     $(resume_flag "$run") "$@"
-  if [[ "$bits" == 16 ]]; then
-    refit="$out/l${bits}_refit"
-    # shellcheck disable=SC2046
-    mnerf train-decoder --bits "$bits" --out "$refit" --informed-steps 0 --steps 0 --finetune-steps 5000 \
-      --decoder-from "$run/decoder.npz" --encoder-channels 64 --encoder-depth 4 $(resume_flag "$refit") "$@"
-    run="$refit"
-  fi
+  refit="$out/l${bits}_refit"
+  # shellcheck disable=SC2046
+  mnerf train-decoder --bits "$bits" --out "$refit" --informed-steps 0 --steps 0 --finetune-steps 5000 \
+    --decoder-from "$run/decoder.npz" --encoder-channels 64 --encoder-depth 4 $(resume_flag "$refit") "$@"
+  run="$refit"
   cp "$run/decoder.npz" "$assets/hidden_l$bits.npz"
   cp "$run/check.npz" "$assets/hidden_l${bits}_check.npz"
 done
