@@ -8,8 +8,9 @@ A checkpoint is ``RUN/checkpoints/<step>/`` with two items:
 
 Orbax writes each step into a temporary directory and renames it when complete, so a crash mid-save
 leaves the previous checkpoint intact. Restoring reads ``meta`` first, checks the fingerprint, then
-restores the arrays as saved (shapes come from the checkpoint: grids change size during training) and
-maps them back onto the caller's pytree structure with ``flax.serialization.from_state_dict``.
+restores the arrays as saved (shapes come from the checkpoint: grids change size during training) onto
+this process's default device (a run checkpointed on a CPU resumes on a GPU, and the reverse), and maps
+them back onto the caller's pytree structure with ``flax.serialization.from_state_dict``.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import flax.serialization
+import jax
 import orbax.checkpoint as ocp
 
 from mnerf_jax.config import Config
@@ -159,8 +161,9 @@ class CheckpointStore:
     def restore(self, target: Any, step: int | None = None) -> tuple[Any, dict[str, Any]]:
         """Restore ``(state, meta)``; ``target`` gives the pytree structure (its shapes are ignored)."""
         step = self._pick(step)
-        args = ocp.args.Composite(state=ocp.args.StandardRestore(), meta=ocp.args.JsonRestore())
         try:
+            abstract = self._abstract_state(step)
+            args = ocp.args.Composite(state=ocp.args.StandardRestore(abstract), meta=ocp.args.JsonRestore())
             out = self._manager.restore(step, args=args)
         except Exception as err:
             raise CheckpointError(f"cannot read checkpoint {step} in {self.directory}: {err}") from None
@@ -171,6 +174,17 @@ class CheckpointStore:
                 f"checkpoint {step} in {self.directory} does not match this model: {err}"
             ) from None
         return state, dict(out["meta"])
+
+    def _abstract_state(self, step: int) -> Any:
+        """The saved arrays' shapes and dtypes, placed on this process's default device.
+
+        Without a target Orbax restores each array onto the device it was saved from, so a checkpoint
+        written on a CPU could not be read on a GPU machine ("topology mismatch"), and the reverse.
+        """
+        meta = ocp.PyTreeCheckpointHandler().metadata(self.directory / str(step) / "state")
+        tree = getattr(meta, "tree", meta)
+        sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        return jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=sharding), tree)
 
     def _pick(self, step: int | None) -> int:
         if step is None:

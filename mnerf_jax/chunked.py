@@ -63,7 +63,8 @@ def render_image(
     repeating its last ray); no gradient is built. Overflowing chunks are re-rendered with grown
     budgets, so no sample is dropped.
 
-    Returns numpy ``rgb [H, W, 3]``, ``depth [H, W]``, ``acc [H, W]``.
+    Returns numpy ``rgb [H, W, 3]`` (``[H, W, 3K]`` for a cond of K watermark IDs), ``depth [H, W]``,
+    ``acc [H, W]``.
     """
     policy = BudgetPolicy() if policy is None else policy
     total = rays_o.shape[0]
@@ -85,7 +86,7 @@ def render_image(
         for name in outs:
             outs[name].append(np.asarray(out[name])[: stop - start])
     return {
-        "rgb": np.concatenate(outs["rgb"]).reshape(height, width, 3),
+        "rgb": np.concatenate(outs["rgb"]).reshape(height, width, -1),
         "depth": np.concatenate(outs["depth"]).reshape(height, width),
         "acc": np.concatenate(outs["acc"]).reshape(height, width),
     }

@@ -143,6 +143,10 @@ class WatermarkConfig:
     jitter: bool = True  # jitter samples along rays while embedding (as TensoRF's training renders)
     id_threshold: float = 1e-3  # identification: Bonferroni-corrected binomial p-value below this
     lr_embedding: float = 1e-2  # Emb and Mod (each ID's Emb row learns only on the steps that draw it)
+    # IDs rendered per step (K distinct IDs, one view): the K renders share the geometry pass and the colour
+    # MLP up to its last layer (FiLM enters there), so every ID learns on K/N of the steps for much less than
+    # K renders' cost. 0: every ID, at most 16 (watermark.ids_per_step_of); 1: one ID per step, as the paper.
+    ids_per_step: int = 0
     keep_checkpoints: int = 2
 
 

@@ -25,9 +25,12 @@ shifted back to end at the image border, so patches may overlap there. Each pixe
 image value and its image-loss gradient come from that patch only, while patch losses see whole patches. The
 same per-patch PRNG keys are used in steps 1 and 3, so a jittered render is reproduced exactly.
 
-Each step draws one ID and one training view (deterministically from the seed and the step, so that a resumed
-run follows the same path), renders the view with that ID's FiLM conditioning and takes one optimiser step
-(Adam, per-group learning rates, exponential decay over both phases).
+Each step draws one training view and ``watermark.ids_per_step`` distinct IDs (default: every ID, at most
+16), deterministically from the seed and the step so that a resumed run follows the same path, renders the
+view with each ID's FiLM conditioning and takes one optimiser step on the mean of their objectives (Adam,
+per-group learning rates, exponential decay over both phases). The IDs share one render's geometry and every
+colour layer but the last (``watermark.condition_many``), so each ID learns more often for much less than
+K renders' cost.
 
 A watermarked run (``WMRUN``) is written by :func:`embed` and read by ``wm_run`` (its layout, the loader
 registered with ``run.load_run``, the keys and decoder, choosing the ID to render).
@@ -189,21 +192,29 @@ def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequen
     return config
 
 
-def _batch(split: Any, view: int, message: np.ndarray, index: int) -> dict[str, jax.Array]:
+def _batch(split: Any, view: int, messages: np.ndarray, ids: Sequence[int]) -> dict[str, jax.Array]:
+    """One step's inputs: the view's rays and pixels, and the ``K`` IDs with their messages ``[K, L]``."""
     o, d = camera_rays(split.cameras, view)
     return {
         "rays_o": jnp.asarray(o),
         "rays_d": jnp.asarray(d),
         "target": jnp.asarray(split.images[view].reshape(-1, 3), jnp.float32),
-        "message": jnp.asarray(message, jnp.float32),
-        "id": jnp.asarray(index, jnp.int32),
+        "message": jnp.asarray(messages[np.asarray(ids)], jnp.float32),
+        "id": jnp.asarray(ids, jnp.int32),
     }
 
 
-def step_choice(seed: int, step: int, num_ids: int, num_views: int) -> tuple[int, int]:
-    """``(ID, training view)`` of step ``step``: uniform, deterministic in ``(seed, step)`` (so resumable)."""
+def step_choice(
+    seed: int, step: int, num_ids: int, num_views: int, ids_per_step: int = 1
+) -> tuple[tuple[int, ...], int]:
+    """``(IDs, training view)`` of step ``step``: ``ids_per_step`` distinct IDs and one view, uniform and
+    deterministic in ``(seed, step)`` (so resumable). One ID per step draws as the ID-at-a-time runs did."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x1D, int(step)]))
-    return int(rng.integers(num_ids)), int(rng.integers(num_views))
+    if ids_per_step == 1:
+        ids: tuple[int, ...] = (int(rng.integers(num_ids)),)
+    else:
+        ids = tuple(int(i) for i in rng.choice(num_ids, size=ids_per_step, replace=False))
+    return ids, int(rng.integers(num_views))
 
 
 def _has_checkpoints(out: Path) -> bool:
@@ -379,8 +390,9 @@ class _Loop:
         try:
             while step < stop:
                 phase = phase_of(step, cfg)
-                index, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images))
-                batch = _batch(self.split, view, messages[index], index)
+                ids, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images),
+                                        watermark.ids_per_step_of(cfg, self.keys.num_ids))  # fmt: skip
+                batch = _batch(self.split, view, messages, ids)
                 db, cb = self.budgets()
                 spec = StepSpec(model=self.config.model, wm=step_cfg, adam_b1=self.config.train.adam_b1,
                                 adam_b2=self.config.train.adam_b2, phase=phase, height=self.layout.height,
@@ -396,7 +408,7 @@ class _Loop:
                     raise EmbedError(f"step {step}: the loss is not finite ({host['loss']}); lower the "
                                      "learning rates (watermark.lr_*)")  # fmt: skip
                 state, step = new_state, step + 1
-                host.update(phase=float(phase), id=float(index), view=float(view))
+                host.update(phase=float(phase), id=float(ids[0]), view=float(view))
                 last = host
                 recent = [*recent, (host["bit_acc"], host["psnr"])][-20:]
                 bar.update(1)

@@ -186,7 +186,8 @@ def colour_mlp(
       viewdirs: ``[P, 3]`` unit view directions.
       cfg: model config (PE frequencies).
       extra_last: optional ``[P, E]``, concatenated to the last hidden activation and met by the rows
-        ``mlp["out_extra"] [E, 3]`` of the last layer.
+        ``mlp["out_extra"] [E, 3]`` of the last layer; or ``[P, K, E]``, K sets of extra features that share
+        everything before the last layer: the output is then ``[P, 3K]`` (set ``k`` in columns ``3k:3k+3``).
       extra_first: optional ``[P, E]``, concatenated to the input and met by ``mlp["in_extra"] [E, W]``.
 
     With both extras None this is exactly TensoRF's MLPRender_Fea.
@@ -198,6 +199,10 @@ def colour_mlp(
     h = jax.nn.relu(h)
     h = jax.nn.relu(h @ mlp["w1"] + mlp["b1"])
     out = narrow_matmul(h, mlp["w2"]) + mlp["b2"]
+    if extra_last is not None and extra_last.ndim == 3:
+        # K renders of one sample set: the hidden layers once, the last layer's extra rows per set.
+        out = out[:, None, :] + narrow_matmul(extra_last, mlp["out_extra"])
+        return jax.nn.sigmoid(out).reshape(out.shape[0], -1)
     if extra_last is not None:
         out = out + narrow_matmul(extra_last, mlp["out_extra"])
     return jax.nn.sigmoid(out)

@@ -281,18 +281,25 @@ def colour_in_chunks(
     if b <= chunk or b % chunk:
         return fns.colour(params, cond, xyz, viewdirs)
     n = b // chunk
+    channels = colour_channels(fns, params, cond)
 
     def body(carry: None, part: tuple[Array, Array, Array]) -> tuple[None, Array]:
         x, v, i = part
         rgb = jax.lax.cond(
             i * chunk < count,
             jax.checkpoint(lambda: fns.colour(params, cond, x, v)),
-            lambda: jnp.zeros((chunk, 3), xyz.dtype),
+            lambda: jnp.zeros((chunk, channels), xyz.dtype),
         )
         return carry, rgb
 
     parts = (xyz.reshape(n, chunk, 3), viewdirs.reshape(n, chunk, 3), jnp.arange(n, dtype=jnp.int32))
-    return jax.lax.scan(body, None, parts)[1].reshape(b, 3)
+    return jax.lax.scan(body, None, parts)[1].reshape(b, channels)
+
+
+def colour_channels(fns: FieldFns, params: Params, cond: Any) -> int:
+    """Width of ``fns.colour``'s output: 3, or ``3K`` for a cond that renders K watermark IDs at once."""
+    probe = jnp.zeros((1, 3), jnp.float32)
+    return int(jax.eval_shape(lambda: fns.colour(params, cond, probe, probe)).shape[-1])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -335,7 +342,8 @@ def render_rays(
       weight_threshold: colour is evaluated only where the weight exceeds this.
 
     Returns:
-      ``rgb [R, 3]`` in [0, 1], ``depth [R]`` (Σ w t), ``acc [R]`` (Σ w), ``density_count``,
+      ``rgb [R, 3]`` in [0, 1] (``[R, 3K]`` when ``fns.colour`` gives K colours per sample: several
+      watermark IDs sharing one geometry pass), ``depth [R]`` (Σ w t), ``acc [R]`` (Σ w), ``density_count``,
       ``colour_count`` (samples that needed each evaluation), ``density_overflow``,
       ``colour_overflow`` (samples beyond the budget that were dropped; 0 when none).
     """
@@ -376,7 +384,7 @@ def render_rays(
         xyz_n = ((xyz - geometry.aabb[0]) * scale - 1.0).reshape(m, 3)
         vd = jnp.broadcast_to(viewdirs[:, None, :], (r, n, 3)).reshape(m, 3)
         rgb_s = jnp.where(significant[:, None], fns.colour(params, cond, xyz_n, vd), 0.0)
-        rgb = jnp.sum(weights[..., None] * rgb_s.reshape(r, n, 3), axis=1)
+        rgb = jnp.sum(weights[..., None] * rgb_s.reshape(r, n, -1), axis=1)
         colour_count, colour_overflow = jnp.sum(significant, dtype=jnp.int32), zero
     else:
         idx, colour_count = compact(significant, colour_budget)
@@ -389,6 +397,8 @@ def render_rays(
 
     if bg is None:
         bg = jnp.ones((3,), rgb.dtype) if geometry.white_bg else jnp.zeros((3,), rgb.dtype)
+    if rgb.shape[-1] != bg.shape[-1]:  # K renders of 3 channels each (several watermark IDs at once)
+        bg = jnp.tile(bg, (*(1,) * (bg.ndim - 1), rgb.shape[-1] // bg.shape[-1]))
     rgb = jnp.clip(rgb + (1.0 - acc)[:, None] * bg, 0.0, 1.0)
     return {
         "rgb": rgb,

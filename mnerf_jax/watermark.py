@@ -83,6 +83,9 @@ def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
         raise WatermarkError(f"the number of IDs must be ≥ 1, got {n}")
     if cfg.variant == "waterf" and n != 1:
         raise WatermarkError(f"variant waterf embeds one message without an ID: use --num-ids 1 (got {n})")
+    if not 0 <= cfg.ids_per_step <= n:
+        raise WatermarkError(f"watermark.ids_per_step must be in [0, {n}] (0: every ID, at most "
+                             f"{MAX_AUTO_IDS_PER_STEP}; {n} IDs), got {cfg.ids_per_step}")  # fmt: skip
 
 
 def uses_ids(cfg: WatermarkConfig) -> bool:
@@ -105,6 +108,17 @@ def injection(cfg: WatermarkConfig) -> str | None:
     if cfg.variant in ("early", "waterf_mod"):
         return "first"
     return "last"
+
+
+# IDs per embedding step when watermark.ids_per_step is 0 (all IDs), for runs with more IDs than this.
+MAX_AUTO_IDS_PER_STEP = 16
+
+
+def ids_per_step_of(cfg: WatermarkConfig, num_ids: int | None = None) -> int:
+    """``K``, the IDs an embedding step renders: ``cfg.ids_per_step``, or for 0 every ID up to
+    :data:`MAX_AUTO_IDS_PER_STEP`."""
+    n = cfg.num_ids if num_ids is None else int(num_ids)
+    return int(cfg.ids_per_step) if cfg.ids_per_step > 0 else min(n, MAX_AUTO_IDS_PER_STEP)
 
 
 def wm_channels(cfg: WatermarkConfig) -> int:
@@ -255,6 +269,23 @@ def condition(params: Params, index: Array | int, cfg: WatermarkConfig) -> Any:
     return {"emb": e}
 
 
+def condition_many(params: Params, indices: Array, cfg: WatermarkConfig) -> Any:
+    """The renderer's ``cond`` for ``K`` IDs at once (``indices [K]``): :func:`condition`'s leaves with a
+    leading ``[K]`` axis. The colour function then returns ``[P, 3K]``: ID ``indices[k]``'s colour in columns
+    ``3k:3k+3``, with everything before the last MLP layer computed once (FiLM enters there)."""
+    if not uses_ids(cfg):
+        raise WatermarkError("variant waterf has no IDs to render several of at once")
+    return jax.vmap(lambda i: condition(params, i, cfg))(jnp.asarray(indices, jnp.int32))
+
+
+def is_multi(cond: Any) -> bool:
+    """True for a :func:`condition_many` cond (a leading ``[K]`` axis on every leaf)."""
+    if cond is None:
+        return False
+    leaf = cond["gamma"] if "gamma" in cond else cond["emb"]
+    return leaf.ndim == 2
+
+
 def position_features(pos_mlp: Params, xyz: Array) -> Array:
     """no_grid's ``w(x)``: ``[P, C]`` from an MLP on ``[x, PE(x, 6)]`` (``x`` normalised, π-scaled PE)."""
     enc = jnp.concatenate([xyz, field.positional_encoding(xyz * jnp.pi, POS_FREQS)], axis=-1)
@@ -270,24 +301,38 @@ def raw_features(params: Params, xyz: Array, cfg: WatermarkConfig) -> Array:
 
 
 def extra_features(params: Params, cond: Any, xyz: Array, cfg: WatermarkConfig) -> Array | None:
-    """The features ``[P, X]`` the colour MLP receives for ``cond`` at ``xyz [P, 3]`` (None for waterf)."""
+    """The features ``[P, X]`` the colour MLP receives for ``cond`` at ``xyz [P, 3]`` (None for waterf);
+    ``[P, K, X]`` for a :func:`condition_many` cond (``w(x)`` sampled once for the K IDs)."""
     if cfg.variant == "waterf":
         return None
+    w = raw_features(params, xyz, cfg) if cfg.variant != "waterf_mod" else None
+    lead: tuple[int, ...] = (xyz.shape[0],)
+    if is_multi(cond):
+        # cond leaves [K, X] against points [P, 1, C]: features [P, K, X].
+        lead = (xyz.shape[0], int(jax.tree.leaves(cond)[0].shape[0]))
+        cond = jax.tree.map(lambda a: a[None], cond)
+        w = None if w is None else w[:, None]
     if cfg.variant == "waterf_mod":
-        return jnp.broadcast_to(cond["emb"], (xyz.shape[0], cond["emb"].shape[-1]))
-    w = raw_features(params, xyz, cfg)
+        return jnp.broadcast_to(cond["emb"], (*lead, cond["emb"].shape[-1]))
+    assert w is not None
     if cfg.variant == "no_film":
-        return jnp.concatenate([w, jnp.broadcast_to(cond["emb"], (w.shape[0], cond["emb"].shape[-1]))], -1)
+        emb = jnp.broadcast_to(cond["emb"], (*lead, cond["emb"].shape[-1]))
+        return jnp.concatenate([jnp.broadcast_to(w, (*lead, w.shape[-1])), emb], -1)
     return cond["gamma"] * w + cond["beta"]
 
 
 def colour(
     params: Params, cond: Any, xyz: Array, viewdirs: Array, model_cfg: ModelConfig, cfg: WatermarkConfig
 ) -> Array:
-    """Watermarked colour ``[P, 3]`` at normalised ``xyz [P, 3]`` along unit ``viewdirs [P, 3]``."""
+    """Watermarked colour ``[P, 3]`` at normalised ``xyz [P, 3]`` along unit ``viewdirs [P, 3]``;
+    ``[P, 3K]`` for a :func:`condition_many` cond of K IDs."""
+    where = injection(cfg)
+    if where == "first" and is_multi(cond):
+        # The ID enters the first layer: nothing after it is shared, so the K colours are K passes.
+        rgb = jax.vmap(lambda c: colour(params, c, xyz, viewdirs, model_cfg, cfg))(cond)  # [K, P, 3]
+        return jnp.moveaxis(rgb, 0, 1).reshape(xyz.shape[0], -1)
     features = field.appearance_features(params, xyz)
     extra = extra_features(params, cond, xyz, cfg)
-    where = injection(cfg)
     return field.colour_mlp(
         params["mlp"],
         features,

@@ -30,6 +30,8 @@ import numpy as np
 
 DEFAULT_THRESHOLD = 1e-3
 NO_WATERMARK = -1
+# IDs rendered together in evaluation: one geometry pass per view serves them all (wm_run.render_with_ids).
+IDS_PER_RENDER = 16
 
 
 # ---------------------------------------------------------------------------------------------- bits
@@ -200,7 +202,8 @@ def evaluate_watermarked_run(
 ) -> dict[str, Any]:
     """Evaluate a watermarked run on ``split``; writes ``run_dir/eval-<split>.json`` and returns its dict.
 
-    For every evaluated view and every ID: render (float, unclamped by nothing but the renderer's [0, 1]),
+    For every evaluated view and every ID (up to :data:`IDS_PER_RENDER` IDs from one geometry pass): render
+    (float, unclamped by nothing but the renderer's [0, 1]),
     decode, and again after a round trip through an 8-bit PNG (``run_dir/eval-<split>/id<K>/<view>.png``).
     The clean (pre-watermark) model of ``--from`` renders the same views: quality is reported against the
     ground truth and against those clean renders, and the clean renders' bit accuracy against every key
@@ -216,7 +219,7 @@ def evaluate_watermarked_run(
     ``_clean`` and ``_gt``.
     """
     from mnerf_jax import run as runs
-    from mnerf_jax import wm_run
+    from mnerf_jax import watermark, wm_run
 
     run_dir = Path(run_dir)
     run = wm_run.load_watermarked_run(run_dir)
@@ -234,16 +237,19 @@ def evaluate_watermarked_run(
         from tqdm import tqdm
 
         bar = tqdm(total=n_views * (n_ids + 1), unit="render", desc=f"evaluate {split}", dynamic_ncols=True)
-    tick = (lambda i, rgb: bar.update(1)) if bar is not None else None
+    # A view's renders count one per ID (a render of K IDs at once is 3K channels wide).
+    tick = (lambda i, rgb: bar.update(rgb.shape[-1] // 3)) if bar is not None else None
     try:
         source = _clean_model(run)
         clean = None
         if source is not None:
             clean = np.stack(runs.render_views(source, scene_split.cameras, indices, on_view=tick))
-        renders = {
-            n: np.stack(wm_run.render_with_id(run, n, scene_split.cameras, indices, on_view=tick))
-            for n in range(n_ids)
-        }
+        renders: dict[int, np.ndarray] = {}
+        group = IDS_PER_RENDER if watermark.uses_ids(run.config.watermark) else 1
+        for first in range(0, n_ids, group):
+            ids = range(first, min(first + group, n_ids))
+            out = wm_run.render_with_ids(run, ids, scene_split.cameras, indices, on_view=tick)
+            renders.update({n: np.stack(images) for n, images in out.items()})
     finally:
         if bar is not None:
             bar.close()

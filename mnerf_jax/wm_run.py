@@ -152,6 +152,32 @@ def with_id(run: runs.LoadedRun, index: Any) -> runs.LoadedRun:
     return dataclasses.replace(run, cond=cond, extras={**run.extras, "id": index})
 
 
+def render_with_ids(
+    run: runs.LoadedRun,
+    ids: Sequence[int],
+    cameras: Any,
+    indices: Sequence[int] | None = None,
+    *,
+    on_view: Callable[[int, np.ndarray], None] | None = None,
+    **kwargs: Any,
+) -> dict[int, list[np.ndarray]]:
+    """Evaluation renders of ``cameras`` for several IDs at once: ``{ID: [[H, W, 3], ...]}``.
+
+    One geometry pass per view serves every ID in ``ids`` (the IDs differ only in the colour MLP's last
+    layer, ``watermark.condition_many``); each ID's images equal :func:`render_with_id`'s to float rounding.
+    ``on_view(view, rgb [H, W, 3K])`` once per view.
+    """
+    if not is_watermarked(run):
+        raise EmbedError(f"{run.run_dir} is not a watermarked run: it has no IDs to choose from")
+    ids = [keys_lib.check_id(i, int(run.extras["num_ids"])) for i in ids]
+    if len(ids) == 1:
+        return {ids[0]: render_with_id(run, ids[0], cameras, indices, on_view=on_view, **kwargs)}
+    cond = watermark.condition_many(run.params, np.asarray(ids, np.int32), run.config.watermark)
+    stacked = runs.render_views(dataclasses.replace(run, cond=cond), cameras, indices, on_view=on_view,
+                                **kwargs)  # fmt: skip
+    return {n: [img[..., 3 * k : 3 * k + 3] for img in stacked] for k, n in enumerate(ids)}
+
+
 def require_watermarked(run_dir: str | Path) -> dict[str, Any]:
     """``run.json`` of a watermarked run directory; EmbedError saying what ``run_dir`` holds otherwise."""
     run_dir = Path(run_dir)

@@ -1,7 +1,8 @@
 """The compiled watermark-embedding step: its static spec, optimiser groups, losses and one jitted step.
 
-One step renders one training view with one ID's FiLM conditioning and back-propagates the two-phase
-objective by deferred back-propagation (:mod:`mnerf_jax.deferred`); :mod:`mnerf_jax.embed` drives it (the
+One step renders one training view with the FiLM conditioning of K IDs (``watermark.ids_per_step``; one
+geometry pass for all of them) and back-propagates the mean of their two-phase objectives by deferred
+back-propagation (:mod:`mnerf_jax.deferred`); :mod:`mnerf_jax.embed` drives it (the
 objective and the phases are described there).
 """
 
@@ -141,12 +142,17 @@ def make_optimizer(
     return optax.multi_transform(transforms, functools.partial(param_labels, cfg=cfg))
 
 
-def render_patch_fn(spec: StepSpec, geometry: raymarch.Geometry, index: jax.Array) -> RenderFn:
+def render_patch_fn(spec: StepSpec, geometry: raymarch.Geometry, ids: jax.Array) -> RenderFn:
+    """Patch renders with the IDs ``ids [K]``: ``rgb [R, 3K]`` (ID ``ids[k]`` in columns ``3k:3k+3``)."""
     fns = watermark.field_fns(spec.model, spec.wm)
 
     def render_fn(params: PyTree, rays: PyTree, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
         # (γ, β) once per call from the ID, not per sample; gradients reach Emb and Mod through them.
-        cond = watermark.condition(params, index, spec.wm)
+        # One ID: the plain cond (exactly the one-ID render); several: one geometry pass for all of them.
+        if ids.shape[0] == 1:
+            cond = watermark.condition(params, ids[0], spec.wm)
+        else:
+            cond = watermark.condition_many(params, ids, spec.wm)
         out = render.render_rays(
             fns, params, cond, rays[0], rays[1], geometry, key,
             train=spec.wm.jitter, density_budget=spec.density_budget, colour_budget=spec.colour_budget,
@@ -165,8 +171,17 @@ def perceptual_loss(kind: str, image: jax.Array, reference: jax.Array, vgg_param
     raise EmbedError(f"unknown watermark.perceptual {kind!r} (watson | vgg)")
 
 
+def split_renders(image: jax.Array) -> jax.Array:
+    """``[..., H, W, 3K]`` (K IDs' renders side by side in the channels) → ``[K, ..., H, W, 3]``."""
+    k = image.shape[-1] // 3
+    return jnp.moveaxis(image.reshape(*image.shape[:-1], k, 3), -2, 0)
+
+
 def patch_loss(cfg: WatermarkConfig, rgb: jax.Array, target: jax.Array) -> jax.Array:
-    """Phase 2's patch loss ``λ_rgb·L1 + λ_TV·TV + λ_SSIM·(1 − SSIM)`` on ``[S, S, 3]`` patches."""
+    """Phase 2's patch loss ``λ_rgb·L1 + λ_TV·TV + λ_SSIM·(1 − SSIM)`` on ``[S, S, 3]`` patches; for K
+    renders of one patch (``rgb [S, S, 3K]``) the mean over them."""
+    if rgb.shape[-1] != 3:
+        return jnp.mean(jax.vmap(lambda r: patch_loss(cfg, r, target))(split_renders(rgb)))
     loss = cfg.lambda_rgb * jnp.mean(jnp.abs(rgb - target))
     if cfg.lambda_tv:
         loss = loss + cfg.lambda_tv * losses.total_variation(rgb)
@@ -183,34 +198,38 @@ def make_image_loss(
     decoder_state: PyTree,
     vgg_params: Any = None,
 ) -> Callable[[jax.Array, PyTree], tuple[jax.Array, dict[str, jax.Array]]]:
-    """The image-level loss ``(image [H, W, 3], decoder params) -> (loss, {"bce", "perceptual"})``.
+    """The image-level loss ``(image [H, W, 3K], decoder params) -> (loss, {"bce", "perceptual"})``.
 
+    ``image`` holds the K renders of one view side by side in its channels (:func:`split_renders`), one
+    per row of ``message [K, L]``; each term is the mean over the K renders.
     Phase 2: ``augment_per_step`` random augmentations (``key``) → LL2 → decoder → BCE(T) against
-    ``message [L]``, plus (``lambda_clean``) BCE(T) of the equally augmented ``target_image`` against ½.
+    the render's message, plus (``lambda_clean``) BCE(T) of the equally augmented ``target_image`` against ½.
     Phase 1: no augmentation, plus the perceptual term against ``target_image``. ``decoder_state``: the
     decoder's variables (BatchNorm statistics, pooling); their ``params`` are replaced by the argument.
     """
     cfg = spec.wm
 
-    def decode(image: jax.Array, dec_params: PyTree) -> jax.Array:
-        """Logits ``[L]`` of ``image [H, W, 3]`` as the decoder sees it (augmented in phase 2: the same key,
-        so the same augmentations with the same parameters for every image passed)."""
-        seen = image[None]
+    def decode(images: jax.Array, dec_params: PyTree) -> jax.Array:
+        """Logits ``[B, L]`` of ``images [B, H, W, 3]`` as the decoder sees them (augmented in phase 2: the
+        same key, so the same augmentations for every call; their random parameters per image)."""
+        seen = images
         if spec.phase == 2 and cfg.augment_per_step > 0:
             seen = augment.random_policy(key, seen, cfg.augment_strength, k=cfg.augment_per_step,
                                          p=cfg.augment_prob, names=cfg.augment_names or None)  # fmt: skip
         variables = {**decoder_state, "params": dec_params}
-        return decoder_lib.apply_ll2(variables, dwt.ll2(seen, cfg.wavelet))[0]
+        return decoder_lib.apply_ll2(variables, dwt.ll2(seen, cfg.wavelet))
 
     def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
-        bce = losses.bce_with_logits(decode(image, dec_params), message, cfg.bce_temperature)
+        renders = split_renders(image)  # [K, H, W, 3]
+        bce = losses.bce_with_logits(decode(renders, dec_params), message, cfg.bce_temperature)
         loss = cfg.lambda_message * bce
         if spec.phase == 2 and cfg.lambda_clean:
-            clean_logits = decode(target_image, dec_params)
+            clean_logits = decode(target_image[None], dec_params)
             loss = loss + cfg.lambda_clean * losses.bce_with_logits(clean_logits, 0.5, cfg.bce_temperature)
         perc = jnp.zeros((), jnp.float32)
         if spec.phase == 1 and cfg.lambda_perceptual:
-            perc = perceptual_loss(cfg.perceptual, image, target_image, vgg_params)
+            reference = jnp.broadcast_to(target_image, renders.shape)
+            perc = perceptual_loss(cfg.perceptual, renders, reference, vgg_params)
             loss = loss + cfg.lambda_perceptual * perc
         return loss, {"bce": bce, "perceptual": perc}
 
@@ -228,11 +247,11 @@ def embed_step(
     *,
     spec: StepSpec,
 ) -> tuple[EmbedState, dict[str, jax.Array]]:
-    """One optimisation step on one image rendered with one ID (deferred back-propagation).
+    """One optimisation step on one view rendered with K IDs (deferred back-propagation).
 
-    batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [L]`` (0/1 float), ``id []`` int32.
-    Returns the new state and scalar metrics (loss terms, bit accuracy of the un-augmented render, PSNR,
-    largest per-patch sample counts).
+    batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [K, L]`` (0/1 float), ``id [K]`` int32 (distinct).
+    Returns the new state and scalar metrics (loss terms, bit accuracy of the un-augmented renders, PSNR;
+    means over the K renders; largest per-patch sample counts).
     """
     cfg = spec.wm
     h, w = spec.height, spec.width
@@ -254,8 +273,9 @@ def embed_step(
     tx = make_optimizer(cfg, spec.adam_b1, spec.adam_b2)
     updates, opt_state = tx.update(grads, state.opt_state, values)
     new_values = optax.apply_updates(values, updates)
-    # Bit accuracy of the render as it is (no augmentation), with the decoder before this update.
-    logits = decoder_lib.apply_ll2(state.decoder, dwt.ll2(image[None], cfg.wavelet))[0]
+    # Bit accuracy of the renders as they are (no augmentation), with the decoder before this update.
+    renders = split_renders(image)
+    logits = decoder_lib.apply_ll2(state.decoder, dwt.ll2(renders, cfg.wavelet))
     metrics = {
         "loss": loss,
         "loss_image": aux["loss_image"],
@@ -263,7 +283,7 @@ def embed_step(
         "bce": aux["bce"],
         "perceptual": aux["perceptual"],
         "bit_acc": jnp.mean(((logits > 0).astype(jnp.float32) == message).astype(jnp.float32)),
-        "psnr": metrics_lib.mse_to_psnr(jnp.mean(jnp.square(image - target_image))),
+        "psnr": metrics_lib.mse_to_psnr(jnp.mean(jnp.square(renders - target_image))),
         "density_count": aux["render_stats"]["density_count"],
         "colour_count": aux["render_stats"]["colour_count"],
     }

@@ -63,7 +63,7 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     batch = {
         "rays_o": jnp.asarray(rays_o), "rays_d": jnp.asarray(rays_d),
         "target": jnp.full((height * size, 3), 0.5, jnp.float32),
-        "message": jnp.asarray(np.arange(16) % 2, jnp.float32), "id": jnp.asarray(1, jnp.int32),
+        "message": jnp.asarray(np.arange(16)[None] % 2, jnp.float32), "id": jnp.asarray([1], jnp.int32),
     }  # fmt: skip
     geometry = source.geometry
     policy = budgets.BudgetPolicy()

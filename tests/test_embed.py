@@ -332,6 +332,12 @@ def test_loaded_run_renders_each_id_differently(tiny: TinyRuns) -> None:
     a, a2, b = (wm_run.render_with_id(loaded, i, split.cameras, [0])[0] for i in (0, 0, 1))
     np.testing.assert_array_equal(a, a2)
     assert np.abs(a - b).max() > 1e-2
+    # Both IDs from one geometry pass (what `mnerf evaluate` renders): the same images.
+    both = wm_run.render_with_ids(loaded, [1, 0], split.cameras, [0])
+    np.testing.assert_allclose(both[0][0], a, atol=1e-5)
+    np.testing.assert_allclose(both[1][0], b, atol=1e-5)
+    with pytest.raises(MnerfError, match="outside"):
+        wm_run.render_with_ids(loaded, [0, 2], split.cameras, [0])
     assert wm_run.with_id(loaded, 1).extras["id"] == 1
     with pytest.raises(MnerfError, match="outside"):
         wm_run.with_id(loaded, 2)
@@ -384,6 +390,8 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, m
           "watermark.augment_names=jpeg,crop"], "unknown augmentation 'crop'"),
         ([*base, "--out", str(tmp_path / "o9"), "--num-ids", "2", "--bits", "8", "--set",
           "watermark.augment_names=jpeg"], "cannot draw 2 distinct augmentations from 1"),
+        ([*base, "--out", str(tmp_path / "o10"), "--num-ids", "2", "--bits", "8", "--set",
+          "watermark.ids_per_step=3"], "ids_per_step must be in [0, 2]"),
         ([*base, "--out", str(tiny.wm), "--num-ids", "2", "--bits", "8"], "--resume"),
     ]  # fmt: skip
     for argv, message in cases:
@@ -391,7 +399,7 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, m
         assert code == 2, (argv, err)
         lines = [line for line in err.splitlines() if line.strip()]
         assert len(lines) == 1 and lines[0].startswith("mnerf: error:") and message in lines[0], err
-    for name in ("o1", "o2", "o3", "o4", "o5", "o6", "o7", "o8", "o9"):
+    for name in ("o1", "o2", "o3", "o4", "o5", "o6", "o7", "o8", "o9", "o10"):
         assert not (tmp_path / name).exists(), name
 
 
@@ -493,8 +501,14 @@ def test_phases_and_step_choices_are_deterministic() -> None:
     assert [S.phase_of(s, cfg) for s in range(5)] == [1, 1, 1, 2, 2]
     picks = [E.step_choice(0, s, 4, 10) for s in range(400)]
     assert picks == [E.step_choice(0, s, 4, 10) for s in range(400)]
-    ids = np.array([p[0] for p in picks])
+    ids = np.array([p[0][0] for p in picks])
     assert set(ids) == {0, 1, 2, 3} and abs((ids == 0).mean() - 0.25) < 0.08
+    # Several IDs per step: distinct, every ID about K/N of the steps, the same draws again.
+    many = [E.step_choice(0, s, 16, 10, ids_per_step=4) for s in range(400)]
+    assert many == [E.step_choice(0, s, 16, 10, ids_per_step=4) for s in range(400)]
+    assert all(len(set(p[0])) == 4 for p in many)
+    counts = np.bincount(np.concatenate([p[0] for p in many]), minlength=16)
+    assert counts.min() > 0.6 * 100 and counts.max() < 1.4 * 100
 
 
 def test_step_config_keeps_what_the_compiled_step_reads() -> None:
@@ -536,3 +550,61 @@ def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.M
         seen.clear()
         jax.eval_shape(loss, image, dec["params"])
         assert seen == [expect]
+
+
+def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
+    # watermark.ids_per_step: one deferred step on K IDs' renders of a view equals the mean over the K IDs of
+    # the direct (full-graph) gradient of that ID's objective alone: the IDs share the render, not the loss.
+    from mnerf_jax import decoder, field, watermark
+    from mnerf_jax.config import ModelConfig, WatermarkConfig
+
+    model = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(3, 3, 3), app_features=6, mlp_width=16,
+                        density_shift=0.0)  # fmt: skip
+    cfg = WatermarkConfig(wm_ranks=(2, 2, 2), augment_per_step=0, jitter=False, lambda_ssim=0.0)
+    base = field.init_field(jax.random.PRNGKey(0), model, (6, 6, 6))
+    base["density"] = jax.tree.map(lambda a: a + 0.6, base["density"])
+    params = watermark.add_watermark(jax.random.PRNGKey(1), base, cfg, 4, extra_scale=0.3)
+    geometry = raymarch.make_geometry(np.array([[-1.5] * 3, [1.5] * 3]), (6, 6, 6), n_samples=24,
+                                      distance_scale=1.0)  # fmt: skip
+    h, w = 10, 9
+    ys, xs = jnp.meshgrid(jnp.linspace(-0.35, 0.35, h), jnp.linspace(-0.35, 0.35, w), indexing="ij")
+    dirs = jnp.stack([xs, ys, -jnp.ones_like(xs)], -1).reshape(-1, 3)
+    dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
+    rays = (jnp.broadcast_to(jnp.array([0.0, 0.0, 4.0]), dirs.shape), dirs)
+    targets = jax.random.uniform(jax.random.PRNGKey(2), (h * w, 3))
+    dec = decoder.init_decoder(jax.random.PRNGKey(3), 8)
+    messages = jnp.array([[1, 0, 1, 1, 0, 0, 1, 0], [0, 0, 1, 0, 1, 1, 1, 0]], jnp.float32)
+    ids = jnp.array([2, 0])
+    spec = S.StepSpec(model=model, wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=2, height=h, width=w,
+                      density_budget=None, colour_budget=None)  # fmt: skip
+    layout = D.patch_layout(h, w, 6)
+    index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
+    target_image = targets.reshape(h, w, 3)
+    ploss = functools.partial(S.patch_loss, cfg)
+
+    def objective(id_arr, message):
+        fn = S.render_patch_fn(spec, geometry, id_arr)
+        loss_fn = S.make_image_loss(spec, jax.random.PRNGKey(5), message, target_image, dec)
+        return fn, loss_fn
+
+    fn, loss_fn = objective(ids, messages)
+    _, aux, image, g_params, g_dec = jax.jit(
+        lambda p, d: D.deferred_grad(fn, loss_fn, ploss, p, d, rays, targets, index, owner,
+                                     jax.random.PRNGKey(4), h, w)
+    )(params, dec["params"])  # fmt: skip
+    assert image.shape == (h, w, 6)
+
+    def direct_one(k, p, d):
+        fn_k, loss_k = objective(ids[k : k + 1], messages[k : k + 1])
+        return D.direct_objective(fn_k, loss_k, ploss, p, d, rays, targets, index, owner,
+                                  jax.random.PRNGKey(4), h, w)[0]  # fmt: skip
+
+    grads = [jax.jit(jax.grad(functools.partial(direct_one, k), argnums=(0, 1)))(params, dec["params"])
+             for k in range(2)]  # fmt: skip
+    ref_params = jax.tree.map(lambda a, b: 0.5 * (a + b), grads[0][0], grads[1][0])
+    ref_dec = jax.tree.map(lambda a, b: 0.5 * (a + b), grads[0][1], grads[1][1])
+    _assert_trees_close(g_params, ref_params)
+    _assert_trees_close(g_dec, ref_dec)
+    # Both IDs' rows of Emb learn on this one step; the two IDs never drawn get nothing.
+    emb_rows = np.abs(np.asarray(g_params["wm"]["emb"]["w0"])).sum(1)
+    assert emb_rows[0] > 0 and emb_rows[2] > 0 and emb_rows[1] == 0 and emb_rows[3] == 0
