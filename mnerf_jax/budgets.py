@@ -64,7 +64,7 @@ class BudgetPolicy:
                 break
 
     A grown budget is ``ladder_budget(count * headroom)`` (one compilation per distinct size). When
-    the largest count of the last ``patience`` calls (the first 5 calls for fresh budgets) times
+    the largest count of the last ``patience`` calls (the first ``fresh_calls`` calls for fresh budgets) times
     ``headroom`` is below ``shrink_below`` of a budget, it shrinks to fit, unless that frees fewer than
     ``min_shrink`` slots (a compilation costs seconds, a few thousand slots save little a call, so small
     renders keep their first budgets). Budgets never exceed
@@ -82,8 +82,10 @@ class BudgetPolicy:
         minimum: int = 1024,
         colour_fraction: float = 0.125,
         min_shrink: int = 1 << 15,
+        fresh_calls: int = 5,
     ) -> None:
         self.headroom = headroom
+        self.fresh_calls = fresh_calls
         self.min_shrink = min_shrink
         self.patience = patience
         self.shrink_below = shrink_below
@@ -130,7 +132,7 @@ class BudgetPolicy:
         state.seen_density = max(state.seen_density, d_count)
         state.seen_colour = max(state.seen_colour, c_count)
         state.calls += 1
-        if state.calls >= (min(5, self.patience) if state.fresh else self.patience):
+        if state.calls >= (min(self.fresh_calls, self.patience) if state.fresh else self.patience):
             for name in ("density", "colour"):
                 seen, current = getattr(state, f"seen_{name}") * self.headroom, getattr(state, name)
                 fitted = self._ladder(seen, cap)
