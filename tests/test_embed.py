@@ -179,28 +179,38 @@ def test_deferred_gradient_equals_one_full_render_gradient() -> None:
     _assert_trees_close(g_e, g_ref[1])
 
 
-def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_losses() -> None:
-    # The watermarked TensoRF through render_rays (dense budgets, no jitter), the decoder's BCE on LL2 plus
-    # Watson, and the phase-2 patch loss (L1 + TV + SSIM) on overlapping 11-px patches of a 13×12 image.
-    from mnerf_jax import decoder, field, losses, render, watermark
-    from mnerf_jax.config import ModelConfig, WatermarkConfig
+def _small_watermarked_scene(cfg, num_ids: int, h: int, w: int) -> tuple:
+    """``(model, params, geometry, rays, targets [h·w, 3])``: a random watermarked TensoRF on a 6³ grid with
+    semi-transparent matter (σ ≈ 2, Δt = 0.3, distance scale 1: every sample gets gradient), seen by an
+    ``h × w`` pinhole camera at z = 4."""
+    from mnerf_jax import field, watermark
+    from mnerf_jax.config import ModelConfig
 
     model = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(3, 3, 3), app_features=6, mlp_width=16,
                         density_shift=0.0)  # fmt: skip
-    cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
     base = field.init_field(jax.random.PRNGKey(0), model, (6, 6, 6))
     base["density"] = jax.tree.map(lambda a: a + 0.6, base["density"])  # visible matter
-    params = watermark.add_watermark(jax.random.PRNGKey(1), base, cfg, 3, extra_scale=0.3)
-    fns = watermark.field_fns(model, cfg)
-    # Semi-transparent matter (σ ≈ 2, Δt = 0.3, distance scale 1): every sample gets gradient.
+    params = watermark.add_watermark(jax.random.PRNGKey(1), base, cfg, num_ids, extra_scale=0.3)
     geometry = raymarch.make_geometry(np.array([[-1.5] * 3, [1.5] * 3]), (6, 6, 6), n_samples=24,
-                                    distance_scale=1.0)  # fmt: skip
-    h, w = 13, 12
+                                      distance_scale=1.0)  # fmt: skip
     ys, xs = jnp.meshgrid(jnp.linspace(-0.35, 0.35, h), jnp.linspace(-0.35, 0.35, w), indexing="ij")
     dirs = jnp.stack([xs, ys, -jnp.ones_like(xs)], -1).reshape(-1, 3)
     dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
     rays = (jnp.broadcast_to(jnp.array([0.0, 0.0, 4.0]), dirs.shape), dirs)
     targets = jax.random.uniform(jax.random.PRNGKey(2), (h * w, 3))
+    return model, params, geometry, rays, targets
+
+
+def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_losses() -> None:
+    # The watermarked TensoRF through render_rays (dense budgets, no jitter), the decoder's BCE on LL2 plus
+    # Watson, and the phase-2 patch loss (L1 + TV + SSIM) on overlapping 11-px patches of a 13×12 image.
+    from mnerf_jax import decoder, losses, render, watermark
+    from mnerf_jax.config import WatermarkConfig
+
+    cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
+    h, w = 13, 12
+    model, params, geometry, rays, targets = _small_watermarked_scene(cfg, 3, h, w)
+    fns = watermark.field_fns(model, cfg)
     dec = decoder.init_decoder(jax.random.PRNGKey(3), 8)
     message = jnp.array([1, 0, 1, 1, 0, 0, 1, 0], jnp.float32)
 
@@ -555,23 +565,12 @@ def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.M
 def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
     # watermark.ids_per_step: one deferred step on K IDs' renders of a view equals the mean over the K IDs of
     # the direct (full-graph) gradient of that ID's objective alone: the IDs share the render, not the loss.
-    from mnerf_jax import decoder, field, watermark
-    from mnerf_jax.config import ModelConfig, WatermarkConfig
+    from mnerf_jax import decoder
+    from mnerf_jax.config import WatermarkConfig
 
-    model = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(3, 3, 3), app_features=6, mlp_width=16,
-                        density_shift=0.0)  # fmt: skip
     cfg = WatermarkConfig(wm_ranks=(2, 2, 2), augment_per_step=0, jitter=False, lambda_ssim=0.0)
-    base = field.init_field(jax.random.PRNGKey(0), model, (6, 6, 6))
-    base["density"] = jax.tree.map(lambda a: a + 0.6, base["density"])
-    params = watermark.add_watermark(jax.random.PRNGKey(1), base, cfg, 4, extra_scale=0.3)
-    geometry = raymarch.make_geometry(np.array([[-1.5] * 3, [1.5] * 3]), (6, 6, 6), n_samples=24,
-                                      distance_scale=1.0)  # fmt: skip
     h, w = 10, 9
-    ys, xs = jnp.meshgrid(jnp.linspace(-0.35, 0.35, h), jnp.linspace(-0.35, 0.35, w), indexing="ij")
-    dirs = jnp.stack([xs, ys, -jnp.ones_like(xs)], -1).reshape(-1, 3)
-    dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
-    rays = (jnp.broadcast_to(jnp.array([0.0, 0.0, 4.0]), dirs.shape), dirs)
-    targets = jax.random.uniform(jax.random.PRNGKey(2), (h * w, 3))
+    model, params, geometry, rays, targets = _small_watermarked_scene(cfg, 4, h, w)
     dec = decoder.init_decoder(jax.random.PRNGKey(3), 8)
     messages = jnp.array([[1, 0, 1, 1, 0, 0, 1, 0], [0, 0, 1, 0, 1, 1, 1, 0]], jnp.float32)
     ids = jnp.array([2, 0])

@@ -37,13 +37,19 @@ def _colour(params: dict, cfg: WatermarkConfig, index: int) -> np.ndarray:
     return np.asarray(W.colour(params, cond, xyz, d, MODEL, cfg))
 
 
-@pytest.mark.parametrize("variant", [v for v in W.VARIANTS if v != "waterf"])
-def test_different_ids_give_different_colours_and_the_same_id_the_same(variant: str) -> None:
+def _strong_film(variant: str) -> tuple[WatermarkConfig, dict]:
+    """A small config of ``variant`` and params whose Mod acts like a trained one (FiLM starts near the
+    identity, γ ≈ 1, β ≈ 0, by design)."""
     cfg = WatermarkConfig(variant=variant, wm_ranks=(2, 2, 2), emb_dim=4, emb_hidden=8)
     params = _params(cfg)
     if "mod" in params["wm"]:
-        # A trained modulator: FiLM starts near the identity (γ ≈ 1, β ≈ 0) by design.
         params["wm"]["mod"] = jax.tree.map(lambda a: 10.0 * a, params["wm"]["mod"])
+    return cfg, params
+
+
+@pytest.mark.parametrize("variant", [v for v in W.VARIANTS if v != "waterf"])
+def test_different_ids_give_different_colours_and_the_same_id_the_same(variant: str) -> None:
+    cfg, params = _strong_film(variant)
     c0, c0_again, c1, c3 = (_colour(params, cfg, i) for i in (0, 0, 1, 3))
     np.testing.assert_array_equal(c0, c0_again)
     assert np.abs(c0 - c1).max() > 1e-3
@@ -182,10 +188,7 @@ def test_field_fns_render_differs_by_id() -> None:
 @pytest.mark.parametrize("variant", [v for v in W.VARIANTS if v != "waterf"])
 def test_several_ids_at_once_equal_each_id_alone(variant: str) -> None:
     # condition_many: K IDs' colours side by side, [P, 3K], each equal to that ID rendered alone.
-    cfg = WatermarkConfig(variant=variant, wm_ranks=(2, 2, 2), emb_dim=4, emb_hidden=8)
-    params = _params(cfg)
-    if "mod" in params["wm"]:
-        params["wm"]["mod"] = jax.tree.map(lambda a: 10.0 * a, params["wm"]["mod"])
+    cfg, params = _strong_film(variant)
     xyz, d = _points()
     ids = jnp.array([3, 0, 2])
     many = np.asarray(W.colour(params, W.condition_many(params, ids, cfg), xyz, d, MODEL, cfg))
