@@ -305,16 +305,17 @@ def extra_features(params: Params, cond: Any, xyz: Array, cfg: WatermarkConfig) 
     ``[P, K, X]`` for a :func:`condition_many` cond (``w(x)`` sampled once for the K IDs)."""
     if cfg.variant == "waterf":
         return None
-    w = raw_features(params, xyz, cfg) if cfg.variant != "waterf_mod" else None
+    multi = is_multi(cond)
     lead: tuple[int, ...] = (xyz.shape[0],)
-    if is_multi(cond):
+    if multi:
         # cond leaves [K, X] against points [P, 1, C]: features [P, K, X].
         lead = (xyz.shape[0], int(jax.tree.leaves(cond)[0].shape[0]))
         cond = jax.tree.map(lambda a: a[None], cond)
-        w = None if w is None else w[:, None]
     if cfg.variant == "waterf_mod":
         return jnp.broadcast_to(cond["emb"], (*lead, cond["emb"].shape[-1]))
-    assert w is not None
+    w = raw_features(params, xyz, cfg)
+    if multi:
+        w = w[:, None]
     if cfg.variant == "no_film":
         emb = jnp.broadcast_to(cond["emb"], (*lead, cond["emb"].shape[-1]))
         return jnp.concatenate([jnp.broadcast_to(w, (*lead, w.shape[-1])), emb], -1)
