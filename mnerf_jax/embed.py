@@ -56,7 +56,7 @@ from mnerf_jax import run as runs
 from mnerf_jax.checkpoint import CheckpointStore, check_compatible, config_fingerprint
 from mnerf_jax.config import Config
 from mnerf_jax.data import camera_rays
-from mnerf_jax.deferred import PatchLayout, patch_layout
+from mnerf_jax.deferred import PatchLayout, patch_layout, tiling_patch_size
 from mnerf_jax.wm_run import DECODER_FILE, META_FILE, STATE_VERSION, WM_KIND, EmbedError
 from mnerf_jax.wm_step import (
     EmbedState,
@@ -274,8 +274,9 @@ def embed(
         loaded = decoder_io.fresh_decoder(bits, split.images, seed=cfg.seed, wavelet=cfg.wavelet)
     decoder_source = decoder_io.FRESH if fresh else str(Path(loaded.path).resolve())
     height, width = int(split.images.shape[1]), int(split.images.shape[2])
-    layout = patch_layout(height, width, cfg.patch_size)
-    if cfg.lambda_ssim and layout.size < 11:
+    # The layout tiles the image with the fewest patches of at most patch_size (no overlap where it divides).
+    layout = patch_layout(height, width, tiling_patch_size(height, width, cfg.patch_size, losses.SSIM_WINDOW))
+    if cfg.lambda_ssim and layout.size < losses.SSIM_WINDOW:
         raise EmbedError(f"patches of {layout.size} px (images {height}×{width}, watermark.patch_size "
                          f"{cfg.patch_size}) are below SSIM's 11×11 window")  # fmt: skip
 

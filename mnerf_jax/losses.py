@@ -171,6 +171,9 @@ def vgg_perceptual_loss(x: jax.Array, y: jax.Array, params: Any = None) -> jax.A
 # --- SSIM and total variation ------------------------------------------------------------------------------
 
 
+SSIM_WINDOW = 11  # dm-pix's default Gaussian window: images need H, W >= this
+
+
 def ssim_loss(x: jax.Array, y: jax.Array) -> jax.Array:
     """``1 − SSIM`` (dm-pix: 11×11 Gaussian window, σ 1.5, data range 1), mean over images; H, W ≥ 11."""
     return 1.0 - jnp.mean(pix.ssim(jnp.asarray(x, jnp.float32), jnp.asarray(y, jnp.float32), max_val=1.0))

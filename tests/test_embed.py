@@ -12,6 +12,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mnerf_jax import deferred as D
 from mnerf_jax import dwt, raymarch, wm_run
@@ -92,6 +94,26 @@ def test_patch_layout_covers_every_pixel_once(h: int, w: int, s: int) -> None:
     for idx in layout.index:
         rows, cols = np.divmod(idx.reshape(size, size), w)
         assert (np.diff(rows, axis=0) == 1).all() and (np.diff(cols, axis=1) == 1).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 300), st.integers(1, 300), st.integers(1, 128), st.integers(1, 16))
+def test_tiling_patch_size_fewest_patches_least_overlap(h: int, w: int, s: int, floor: int) -> None:
+    size = D.tiling_patch_size(h, w, s, floor)
+    cap = min(s, h, w)
+    assert min(floor, cap) <= size <= cap
+    layout = D.patch_layout(h, w, size)
+    # As few patches as the largest allowed side needs, and never more rendered pixels than with it.
+    widest = D.patch_layout(h, w, cap)
+    assert layout.num_patches == widest.num_patches
+    assert layout.index.size <= widest.index.size
+
+
+def test_tiling_patch_size_on_a_100px_view() -> None:
+    assert D.tiling_patch_size(100, 100, 64) == 50  # 4 patches, 10,000 rays (64 px: 16,384)
+    assert D.tiling_patch_size(100, 100, 64, 11) == 50
+    assert D.tiling_patch_size(20, 20, 19, 11) == 11  # ceil(20/2) = 10 < the SSIM window
+    assert D.tiling_patch_size(64, 64, 64) == 64
 
 
 def test_assemble_inverts_gather() -> None:
