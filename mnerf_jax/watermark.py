@@ -86,6 +86,9 @@ def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
     if not 0 <= cfg.ids_per_step <= n:
         raise WatermarkError(f"watermark.ids_per_step must be in [0, {n}] (0: every ID, at most "
                              f"{MAX_AUTO_IDS_PER_STEP}; {n} IDs), got {cfg.ids_per_step}")  # fmt: skip
+    if cfg.fidelity_psnr < 0 or cfg.lambda_fidelity < 0:
+        raise WatermarkError("watermark.fidelity_psnr (dB, 0: off) and watermark.lambda_fidelity must be "
+                             f"≥ 0, got {cfg.fidelity_psnr} and {cfg.lambda_fidelity}")  # fmt: skip
 
 
 def uses_ids(cfg: WatermarkConfig) -> bool:

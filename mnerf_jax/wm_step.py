@@ -162,6 +162,22 @@ def render_patch_fn(spec: StepSpec, geometry: raymarch.Geometry, ids: jax.Array)
     return render_fn
 
 
+def uses_fidelity(cfg: WatermarkConfig) -> bool:
+    """True when the quality budget (``watermark.fidelity_psnr``) is on."""
+    return cfg.fidelity_psnr > 0
+
+
+def fidelity_loss(
+    cfg: WatermarkConfig, renders: jax.Array, reference: jax.Array
+) -> tuple[jax.Array, jax.Array]:
+    """``(mean over K of relu(MSE_k / MSE_budget − 1), mean MSE)`` of ``renders [K, H, W, 3]`` against the
+    clean model's ``reference [H, W, 3]``; ``MSE_budget = 10^(−fidelity_psnr / 10)``: zero, with no gradient,
+    for renders inside the budget."""
+    mse = jnp.mean(jnp.square(renders - reference[None]), axis=(1, 2, 3))
+    budget = 10.0 ** (-cfg.fidelity_psnr / 10.0)
+    return jnp.mean(jax.nn.relu(mse / budget - 1.0)), jnp.mean(mse)
+
+
 def perceptual_loss(kind: str, image: jax.Array, reference: jax.Array, vgg_params: Any = None) -> jax.Array:
     """Phase 1's perceptual term: Watson-DCT (default) or LPIPS-VGG."""
     if kind == "watson":
@@ -197,6 +213,7 @@ def make_image_loss(
     target_image: jax.Array,
     decoder_state: PyTree,
     vgg_params: Any = None,
+    reference: jax.Array | None = None,
 ) -> Callable[[jax.Array, PyTree], tuple[jax.Array, dict[str, jax.Array]]]:
     """The image-level loss ``(image [H, W, 3K], decoder params) -> (loss, {"bce", "perceptual"})``.
 
@@ -204,8 +221,10 @@ def make_image_loss(
     per row of ``message [K, L]``; each term is the mean over the K renders.
     Phase 2: ``augment_per_step`` random augmentations (``key``) → LL2 → decoder → BCE(T) against
     the render's message, plus (``lambda_clean``) BCE(T) of the equally augmented ``target_image`` against ½.
-    Phase 1: no augmentation, plus the perceptual term against ``target_image``. ``decoder_state``: the
-    decoder's variables (BatchNorm statistics, pooling); their ``params`` are replaced by the argument.
+    Phase 1: no augmentation, plus the perceptual term against ``target_image``. Both phases, given the clean
+    model's render ``reference [H, W, 3]`` (quality budget on): ``lambda_fidelity ·`` :func:`fidelity_loss`.
+    ``decoder_state``: the decoder's variables (BatchNorm statistics, pooling); their ``params`` are replaced
+    by the argument.
     """
     cfg = spec.wm
 
@@ -228,10 +247,14 @@ def make_image_loss(
             loss = loss + cfg.lambda_clean * losses.bce_with_logits(clean_logits, 0.5, cfg.bce_temperature)
         perc = jnp.zeros((), jnp.float32)
         if spec.phase == 1 and cfg.lambda_perceptual:
-            reference = jnp.broadcast_to(target_image, renders.shape)
-            perc = perceptual_loss(cfg.perceptual, renders, reference, vgg_params)
+            targets = jnp.broadcast_to(target_image, renders.shape)
+            perc = perceptual_loss(cfg.perceptual, renders, targets, vgg_params)
             loss = loss + cfg.lambda_perceptual * perc
-        return loss, {"bce": bce, "perceptual": perc}
+        aux = {"bce": bce, "perceptual": perc}
+        if reference is not None:
+            aux["fidelity"], aux["mse_clean"] = fidelity_loss(cfg, renders, reference)
+            loss = loss + cfg.lambda_fidelity * aux["fidelity"]
+        return loss, aux
 
     return image_loss
 
@@ -249,7 +272,9 @@ def embed_step(
 ) -> tuple[EmbedState, dict[str, jax.Array]]:
     """One optimisation step on one view rendered with K IDs (deferred back-propagation).
 
-    batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [K, L]`` (0/1 float), ``id [K]`` int32 (distinct).
+    batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [K, L]`` (0/1 float), ``id [K]`` int32 (distinct),
+    and with the quality budget on (``watermark.fidelity_psnr``) ``reference [H·W, 3]``: the clean model's
+    render of the view.
     Returns the new state and scalar metrics (loss terms, bit accuracy of the un-augmented renders, PSNR;
     means over the K renders; largest per-patch sample counts).
     """
@@ -259,13 +284,16 @@ def embed_step(
     k_render, k_aug = jax.random.split(key)
     message = batch["message"]
     target_image = batch["target"].reshape(h, w, 3)
-    image_loss = make_image_loss(spec, k_aug, message, target_image, state.decoder, vgg_params)
+    rays = (batch["rays_o"], batch["rays_d"])
+    reference = batch["reference"].reshape(h, w, 3) if "reference" in batch else None
+    image_loss = make_image_loss(spec, k_aug, message, target_image, state.decoder, vgg_params, reference)
     ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
     render_fn = render_patch_fn(spec, geometry, batch["id"])
     loss, aux, image, g_field, g_dec = deferred_grad(
         render_fn, image_loss, ploss, state.params, state.decoder["params"],
-        (batch["rays_o"], batch["rays_d"]), batch["target"], layout_index, layout_owner, k_render, h, w,
+        rays, batch["target"], layout_index, layout_owner, k_render, h, w,
     )  # fmt: skip
+    stats = aux["render_stats"]
     if spec.phase == 1:
         g_dec = jax.tree.map(jnp.zeros_like, g_dec)  # the decoder is frozen in phase 1
     grads = {"field": g_field, "decoder": g_dec}
@@ -284,9 +312,12 @@ def embed_step(
         "perceptual": aux["perceptual"],
         "bit_acc": jnp.mean(((logits > 0).astype(jnp.float32) == message).astype(jnp.float32)),
         "psnr": metrics_lib.mse_to_psnr(jnp.mean(jnp.square(renders - target_image))),
-        "density_count": aux["render_stats"]["density_count"],
-        "colour_count": aux["render_stats"]["colour_count"],
+        "density_count": stats["density_count"],
+        "colour_count": stats["colour_count"],
     }
+    if reference is not None:
+        metrics["fidelity"] = aux["fidelity"]
+        metrics["psnr_clean"] = metrics_lib.mse_to_psnr(aux["mse_clean"])
     new_state = state.replace(
         params=new_values["field"],
         decoder={**state.decoder, "params": new_values["decoder"]},

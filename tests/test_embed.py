@@ -424,6 +424,8 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, m
           "watermark.augment_names=jpeg"], "cannot draw 2 distinct augmentations from 1"),
         ([*base, "--out", str(tmp_path / "o10"), "--num-ids", "2", "--bits", "8", "--set",
           "watermark.ids_per_step=3"], "ids_per_step must be in [0, 2]"),
+        ([*base, "--out", str(tmp_path / "o11"), "--num-ids", "2", "--bits", "8", "--set",
+          "watermark.fidelity_psnr=-3"], "fidelity_psnr"),
         ([*base, "--out", str(tiny.wm), "--num-ids", "2", "--bits", "8"], "--resume"),
     ]  # fmt: skip
     for argv, message in cases:
@@ -431,7 +433,7 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, m
         assert code == 2, (argv, err)
         lines = [line for line in err.splitlines() if line.strip()]
         assert len(lines) == 1 and lines[0].startswith("mnerf: error:") and message in lines[0], err
-    for name in ("o1", "o2", "o3", "o4", "o5", "o6", "o7", "o8", "o9", "o10"):
+    for name in ("o1", "o2", "o3", "o4", "o5", "o6", "o7", "o8", "o9", "o10", "o11"):
         assert not (tmp_path / name).exists(), name
 
 
@@ -629,3 +631,60 @@ def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
     # Both IDs' rows of Emb learn on this one step; the two IDs never drawn get nothing.
     emb_rows = np.abs(np.asarray(g_params["wm"]["emb"]["w0"])).sum(1)
     assert emb_rows[0] > 0 and emb_rows[2] > 0 and emb_rows[1] == 0 and emb_rows[3] == 0
+
+
+# ------------------------------------------------------------------------------------ quality budget
+
+
+def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
+    # watermark.fidelity_psnr: + λ·mean_k relu(MSE(render_k, clean) / 10^(−psnr/10) − 1): zero inside.
+    from mnerf_jax import decoder
+    from mnerf_jax.config import ModelConfig, WatermarkConfig
+
+    dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
+    reference = jax.random.uniform(jax.random.PRNGKey(1), (24, 24, 3))
+    target = jax.random.uniform(jax.random.PRNGKey(2), (24, 24, 3))
+    renders = reference[..., None, :] + 0.03 * jax.random.normal(jax.random.PRNGKey(3), (24, 24, 2, 3))
+    image = renders.reshape(24, 24, 6)  # two IDs' renders side by side
+    messages = jnp.array([[1, 0, 1, 1, 0, 0, 1, 0], [0, 0, 1, 0, 1, 1, 1, 0]], jnp.float32)
+
+    def loss_fn(psnr: float, phase: int, ref: jax.Array | None):
+        cfg = WatermarkConfig(augment_per_step=0, fidelity_psnr=psnr, lambda_fidelity=4.0)
+        spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
+                          width=24, density_budget=1, colour_budget=1)  # fmt: skip
+        return jax.jit(S.make_image_loss(spec, jax.random.PRNGKey(4), messages, target, dec, None, ref))
+
+    mse = jnp.mean(jnp.square(renders - reference[..., None, :]), axis=(0, 1, 3))  # per ID
+    assert float(jnp.min(mse)) > 10 ** (-3.5)  # both renders outside a 35 dB budget (~30.5 dB)
+    expected = 4.0 * jnp.mean(mse / 10 ** (-3.5) - 1.0)
+    for phase in (1, 2):
+        with_ref, aux = loss_fn(35.0, phase, reference)(image, dec["params"])
+        without, _ = loss_fn(0.0, phase, None)(image, dec["params"])
+        np.testing.assert_allclose(with_ref - without, expected, rtol=1e-4)
+        np.testing.assert_allclose(aux["mse_clean"], jnp.mean(mse), rtol=1e-5)
+        inside, _ = loss_fn(25.0, phase, reference)(image, dec["params"])  # a budget they are inside
+        np.testing.assert_allclose(inside, without, rtol=1e-6)
+    # Outside the budget its gradient pulls every render towards the clean one; inside, nothing.
+    g0 = jax.grad(lambda x: loss_fn(0.0, 2, None)(x, dec["params"])[0])(image)
+    g = jax.grad(lambda x: loss_fn(35.0, 2, reference)(x, dec["params"])[0])(image)
+    assert float(jnp.sum((g - g0) * (image - jnp.tile(reference, (1, 1, 2))))) > 0
+    g_inside = jax.grad(lambda x: loss_fn(25.0, 2, reference)(x, dec["params"])[0])(image)
+    np.testing.assert_allclose(g_inside, g0, rtol=1e-5, atol=1e-9)
+
+
+def test_clean_references_are_the_clean_models_renders_of_the_training_views(tiny: TinyRuns) -> None:
+    # The quality budget's reference: every training view of the source run, rendered once as evaluation
+    # renders it, kept in float16; each step's batch carries its view's.
+    from mnerf_jax import run as runs
+
+    source = E.load_source(tiny.fit)
+    split = source.load_scene(None, splits=("train",)).split("train")
+    references = E.clean_references(source, split)
+    assert references.dtype == np.float16 and references.shape == split.images.shape
+    views = [0, len(split.images) - 1]
+    renders = np.stack(runs.render_views(source, split.cameras, views))
+    np.testing.assert_allclose(references[views].astype(np.float32), renders, atol=3e-4)
+    messages = np.eye(2, 8, dtype=np.float32)
+    batch = E._batch(split, 3, messages, (1,), references)
+    np.testing.assert_array_equal(batch["reference"], references[3].reshape(-1, 3).astype(np.float32))
+    assert "reference" not in E._batch(split, 3, messages, (1,))
