@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from mnerf_jax import deferred as D
 from mnerf_jax import dwt, raymarch, wm_run
 from mnerf_jax import embed as E
+from mnerf_jax import embed_inputs as EI
 from mnerf_jax import wm_step as S
 from mnerf_jax.errors import MnerfError
 
@@ -462,10 +463,10 @@ def test_watermarked_run_without_keys_or_with_foreign_keys_is_refused(tiny: Tiny
 
 def test_non_rgb_images_are_refused() -> None:
     with pytest.raises(MnerfError, match="RGB"):
-        E.check_rgb_images(np.zeros((2, 8, 8, 4), np.float32), "scene")
+        EI.check_rgb_images(np.zeros((2, 8, 8, 4), np.float32), "scene")
     with pytest.raises(MnerfError, match="RGB"):
-        E.check_rgb_images(np.zeros((2, 8, 8), np.float32), "scene")
-    assert E.check_rgb_images(np.zeros((1, 8, 8, 3)), "scene").dtype == np.float32
+        EI.check_rgb_images(np.zeros((2, 8, 8), np.float32), "scene")
+    assert EI.check_rgb_images(np.zeros((1, 8, 8, 3)), "scene").dtype == np.float32
 
 
 # ------------------------------------------------------------------------------------------- optimiser
@@ -533,13 +534,13 @@ def test_phases_and_step_choices_are_deterministic() -> None:
 
     cfg = WatermarkConfig(phase1_steps=3, phase2_steps=2)
     assert [S.phase_of(s, cfg) for s in range(5)] == [1, 1, 1, 2, 2]
-    picks = [E.step_choice(0, s, 4, 10) for s in range(400)]
-    assert picks == [E.step_choice(0, s, 4, 10) for s in range(400)]
+    picks = [EI.step_choice(0, s, 4, 10) for s in range(400)]
+    assert picks == [EI.step_choice(0, s, 4, 10) for s in range(400)]
     ids = np.array([p[0][0] for p in picks])
     assert set(ids) == {0, 1, 2, 3} and abs((ids == 0).mean() - 0.25) < 0.08
     # Several IDs per step: distinct, every ID about K/N of the steps, the same draws again.
-    many = [E.step_choice(0, s, 16, 10, ids_per_step=4) for s in range(400)]
-    assert many == [E.step_choice(0, s, 16, 10, ids_per_step=4) for s in range(400)]
+    many = [EI.step_choice(0, s, 16, 10, ids_per_step=4) for s in range(400)]
+    assert many == [EI.step_choice(0, s, 16, 10, ids_per_step=4) for s in range(400)]
     assert all(len(set(p[0])) == 4 for p in many)
     counts = np.bincount(np.concatenate([p[0] for p in many]), minlength=16)
     assert counts.min() > 0.6 * 100 and counts.max() < 1.4 * 100
@@ -679,12 +680,12 @@ def test_clean_references_are_the_clean_models_renders_of_the_training_views(tin
 
     source = E.load_source(tiny.fit)
     split = source.load_scene(None, splits=("train",)).split("train")
-    references = E.clean_references(source, split)
+    references = EI.clean_references(source, split)
     assert references.dtype == np.float16 and references.shape == split.images.shape
     views = [0, len(split.images) - 1]
     renders = np.stack(runs.render_views(source, split.cameras, views))
     np.testing.assert_allclose(references[views].astype(np.float32), renders, atol=3e-4)
     messages = np.eye(2, 8, dtype=np.float32)
-    batch = E._batch(split, 3, messages, (1,), references)
+    batch = EI.step_batch(split, 3, messages, (1,), references)
     np.testing.assert_array_equal(batch["reference"], references[3].reshape(-1, 3).astype(np.float32))
-    assert "reference" not in E._batch(split, 3, messages, (1,))
+    assert "reference" not in EI.step_batch(split, 3, messages, (1,))
