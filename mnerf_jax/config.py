@@ -148,7 +148,7 @@ class WatermarkConfig:
     # K renders' cost. 0: every ID, at most 16 (watermark.ids_per_step_of); 1: one ID per step, as the paper.
     ids_per_step: int = 0
     # Quality budget (not in the paper): > 0 adds lambda_fidelity · relu(MSE / MSE_budget − 1) between each
-    # watermarked render and the clean model's render of the same view (same samples), both phases, with
+    # watermarked render and the clean model's render of the same view (made once), both phases, with
     # MSE_budget = 10^(−fidelity_psnr / 10): no pull while a render is inside the budget, a steady one
     # outside it. The paper's losses alone set no scale for quality: the decoder's gradient on a 64-px view
     # is ~15,000× the patch L1's, so PSNR fell 11 dB on the demo scene whatever lambda_rgb (0.1 or 1.0).

@@ -293,7 +293,6 @@ def embed_step(
         render_fn, image_loss, ploss, state.params, state.decoder["params"],
         rays, batch["target"], layout_index, layout_owner, k_render, h, w,
     )  # fmt: skip
-    stats = aux["render_stats"]
     if spec.phase == 1:
         g_dec = jax.tree.map(jnp.zeros_like, g_dec)  # the decoder is frozen in phase 1
     grads = {"field": g_field, "decoder": g_dec}
@@ -312,8 +311,8 @@ def embed_step(
         "perceptual": aux["perceptual"],
         "bit_acc": jnp.mean(((logits > 0).astype(jnp.float32) == message).astype(jnp.float32)),
         "psnr": metrics_lib.mse_to_psnr(jnp.mean(jnp.square(renders - target_image))),
-        "density_count": stats["density_count"],
-        "colour_count": stats["colour_count"],
+        "density_count": aux["render_stats"]["density_count"],
+        "colour_count": aux["render_stats"]["colour_count"],
     }
     if reference is not None:
         metrics["fidelity"] = aux["fidelity"]
