@@ -243,8 +243,9 @@ def embed(
     # The layout tiles the image with the fewest patches of at most patch_size (no overlap where it divides).
     layout = patch_layout(height, width, tiling_patch_size(height, width, cfg.patch_size, losses.SSIM_WINDOW))
     if cfg.lambda_ssim and layout.size < losses.SSIM_WINDOW:
+        window = losses.SSIM_WINDOW
         raise EmbedError(f"patches of {layout.size} px (images {height}×{width}, watermark.patch_size "
-                         f"{cfg.patch_size}) are below SSIM's 11×11 window")  # fmt: skip
+                         f"{cfg.patch_size}) are below SSIM's {window}×{window} window")  # fmt: skip
 
     store = CheckpointStore(out, keep=max(cfg.keep_checkpoints, 1))
     # A fitted field keeps most of its in-mask samples for colour (91 % on the tiny test scene), so the colour
