@@ -108,8 +108,9 @@ class WatermarkConfig:
     variant: str = "multinerf"
     min_hamming: int = 0  # 0: chosen from num_ids and bits
     key_seed: int = 0
-    phase1_steps: int = 200
-    phase2_steps: int = 800
+    # -1: by the number of IDs, 50 + 200 per ID, at least 200 + 800 (watermark.phase_steps).
+    phase1_steps: int = -1
+    phase2_steps: int = -1
     patch_size: int = 64
     lambda_message: float = 0.95
     lambda_perceptual: float = 0.05
@@ -126,16 +127,21 @@ class WatermarkConfig:
     augment_prob: float = 0.75
     lr_grid: float = 0.02
     lr_network: float = 1e-3
-    lr_decoder: float = 1e-4
+    # The paper gives no decoder rate. 1e-3 rather than 1e-4 (with lambda_clean below), lego 1/8,
+    # 16 IDs x 16 bits, 4,000 steps, 200 test views, on a GPU: 95.1 % bits and the right ID for 96.6 % of
+    # renders, against 85.0 % and 78 % at 1e-4, at the same PSNR (25.8 / 25.7 dB). Without lambda_clean the
+    # faster decoder starts to read the scene itself (demo scene: 1 of 24 clean renders named as an ID).
+    lr_decoder: float = 1e-3
     # The fitted TensoRF's own factors, basis and MLP train at lr_grid / lr_network times this (the new
     # watermark modules at the full rates). WateRF and the paper use 1.0; but Adam's first steps move every
     # parameter by about its lr whatever its gradient, and at 1.0 that cost the fitted procedural field
     # 35.4 → 29.0 dB train-view PSNR in three steps (at 0.1: 33.9 after one step, 35.4 again at the third).
     lr_source_scale: float = 0.1
     # Phase 2: + lambda_clean · BCE(decoder(augmented ground-truth view), ½): a clean image should decode to
-    # nothing. Not in the paper; meant for decoders that learn with the field (fresh ones), which otherwise
-    # learn to read the scene itself (clean renders then decode as a key).
-    lambda_clean: float = 0.0
+    # nothing. Not in the paper (0 there): a decoder that learns with the field otherwise learns to read the
+    # scene itself, and clean renders decode as a key. Demo scene, 30 dB budget, lr_decoder 1e-3: 0.3 took
+    # false detections from 4.2 % to none for 98.0 -> 92.3 % bits.
+    lambda_clean: float = 0.3
     lr_decay_ratio: float = 0.1
     wavelet: str = "bior4.4"
     checkpoint_every: int = 100

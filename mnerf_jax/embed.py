@@ -166,6 +166,11 @@ def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequen
     )
     watermark.check_config(config.watermark)
     keys_lib.check_sizes(int(num_ids), int(bits))
+    # The run's config records the schedule it ran, not -1.
+    phase1, phase2 = watermark.phase_steps(config.watermark)
+    config = dataclasses.replace(
+        config, watermark=dataclasses.replace(config.watermark, phase1_steps=phase1, phase2_steps=phase2)
+    )
     cfg = config.watermark
     if cfg.perceptual not in ("watson", "vgg"):
         raise EmbedError(f"unknown watermark.perceptual {cfg.perceptual!r} (watson | vgg)")

@@ -62,7 +62,7 @@ class StepSpec:
 
 
 def total_steps(cfg: WatermarkConfig) -> int:
-    return int(cfg.phase1_steps) + int(cfg.phase2_steps)
+    return sum(watermark.phase_steps(cfg))
 
 
 # Fields of WatermarkConfig that only the host loop reads (which step is in which phase, keys, seeds,
@@ -83,7 +83,7 @@ def step_config(cfg: WatermarkConfig) -> WatermarkConfig:
 
 def phase_of(step: int, cfg: WatermarkConfig) -> int:
     """1 for the first ``phase1_steps`` steps, 2 after."""
-    return 1 if step < cfg.phase1_steps else 2
+    return 1 if step < watermark.phase_steps(cfg)[0] else 2
 
 
 def param_labels(tree: PyTree, cfg: WatermarkConfig) -> PyTree:

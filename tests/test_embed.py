@@ -379,6 +379,18 @@ def test_loaded_run_renders_each_id_differently(tiny: TinyRuns) -> None:
         wm_run.with_id(plain, 0)
 
 
+def test_embedding_config_records_the_schedule_it_runs(tiny: TinyRuns) -> None:
+    from mnerf_jax import run as runs
+
+    source = runs.load_run(tiny.fit)
+    wm = E.resolve_config(source, None, [], 16, 16).watermark
+    assert (wm.phase1_steps, wm.phase2_steps) == (800, 3200)  # -1 by default: by the number of IDs
+    wm = E.resolve_config(source, None, ["watermark.phase2_steps=7"], 2, 8).watermark
+    assert (wm.phase1_steps, wm.phase2_steps) == (200, 7)
+    with pytest.raises(MnerfError, match="must be ≥ 1"):
+        E.resolve_config(source, None, ["watermark.phase1_steps=0", "watermark.phase2_steps=0"], 2, 8)
+
+
 def test_resume_continues_exactly(tiny: TinyRuns) -> None:
     # 3 steps, stop, resume to 5  ==  5 steps in one go, across the phase boundary (phase 2 with its random
     # augmentations). The same 80 steps in all as the tiny run: its compiled steps serve these.

@@ -147,6 +147,21 @@ def test_unknown_variant_and_bad_ranks_are_refused() -> None:
         W.check_config(WatermarkConfig(wm_ranks=(0, 0, 0)))
 
 
+def test_the_automatic_schedule_grows_with_the_ids() -> None:
+    from mnerf_jax import wm_step as S
+
+    # -1 (the default): 50 + 200 steps per ID, at least 4 IDs' worth; a value >= 0 is used as it is.
+    assert W.phase_steps(WatermarkConfig(num_ids=2)) == (200, 800)
+    assert W.phase_steps(WatermarkConfig(num_ids=4)) == (200, 800)
+    assert W.phase_steps(WatermarkConfig(), num_ids=16) == (800, 3200)
+    assert W.phase_steps(WatermarkConfig(num_ids=16, phase1_steps=0)) == (0, 3200)
+    assert W.phase_steps(WatermarkConfig(num_ids=16, phase1_steps=3, phase2_steps=0)) == (3, 0)
+    cfg = WatermarkConfig(num_ids=8)
+    assert S.total_steps(cfg) == 2000 and S.phase_of(399, cfg) == 1 and S.phase_of(400, cfg) == 2
+    with pytest.raises(MnerfError, match="phase1_steps"):
+        W.check_config(WatermarkConfig(phase2_steps=-2))
+
+
 def test_watermark_grid_follows_upsampling_and_shrinking() -> None:
     params = _params(WatermarkConfig(wm_ranks=(2, 2, 2)))
     up = W.resample_watermark(params, (12, 10, 9))
