@@ -596,7 +596,7 @@ def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.M
         loss = S.make_image_loss(spec, jax.random.PRNGKey(1), jnp.zeros(8), image, dec)
         seen.clear()
         jax.eval_shape(loss, image, dec["params"])
-        assert seen == [expect]
+        assert seen == [expect, expect]  # the renders, and the ground truth of the clean term (lambda_clean)
 
 
 def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
