@@ -156,10 +156,12 @@ def _assert_trees_close(a, b, tol=1e-4) -> None:
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=tol * scale, rtol=0)
 
 
-def test_deferred_gradient_equals_direct_gradient() -> None:
+@pytest.mark.parametrize("h, w, patch", [(13, 10, 4), (8, 8, 8)])
+def test_deferred_gradient_equals_direct_gradient(h: int, w: int, patch: int) -> None:
     # 13×10 pixels in 4-px patches: border patches overlap, every patch is jittered with its own key.
-    h, w, patch = 13, 10, 4
+    # 8×8 in one 8-px patch: the single-patch path (one render on the graph, no graph-free render).
     deferred, direct, image, layout = _gradients(h, w, patch)
+    assert layout.num_patches == (1 if patch == 8 else 12)
     assert abs(float(deferred[0]) - float(direct[0])) < 1e-5
     _assert_trees_close(deferred[1], direct[1])
     _assert_trees_close(deferred[2], direct[2])
