@@ -226,14 +226,17 @@ def _small_watermarked_scene(cfg, num_ids: int, h: int, w: int) -> tuple:
     return model, params, geometry, rays, targets
 
 
-def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_losses() -> None:
+@pytest.mark.parametrize("h, w, size", [(13, 12, 11), (12, 12, 12)])
+def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_losses(
+    h: int, w: int, size: int
+) -> None:
     # The watermarked TensoRF through render_rays (dense budgets, no jitter), the decoder's BCE on LL2 plus
-    # Watson, and the phase-2 patch loss (L1 + TV + SSIM) on overlapping 11-px patches of a 13×12 image.
+    # Watson, and the phase-2 patch loss (L1 + TV + SSIM) on overlapping 11-px patches of a 13×12 image, or
+    # on one 12-px patch (the single-patch path: one render on the graph).
     from mnerf_jax import decoder, losses, render, watermark
     from mnerf_jax.config import WatermarkConfig
 
     cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
-    h, w = 13, 12
     model, params, geometry, rays, targets = _small_watermarked_scene(cfg, 3, h, w)
     fns = watermark.field_fns(model, cfg)
     dec = decoder.init_decoder(jax.random.PRNGKey(3), 8)
@@ -252,7 +255,7 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
         return loss, {}
 
     ploss = functools.partial(S.patch_loss, cfg)
-    layout = D.patch_layout(h, w, 11)
+    layout = D.patch_layout(h, w, size)
     index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
     _, _, image, g_params, g_dec = jax.jit(
         lambda p, d: D.deferred_grad(render_fn, image_loss, ploss, p, d, rays, targets, index, owner,
@@ -263,7 +266,7 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
         rgb, _ = render_fn(p, rays, None)
         loss, _ = image_loss(rgb.reshape(h, w, 3), d)
         for idx in layout.index:
-            loss = loss + ploss(rgb[idx].reshape(11, 11, 3), targets[idx].reshape(11, 11, 3))
+            loss = loss + ploss(rgb[idx].reshape(size, size, 3), targets[idx].reshape(size, size, 3))
         return loss
 
     ref_params, ref_dec = jax.jit(jax.grad(full, argnums=(0, 1)))(params, dec["params"])
