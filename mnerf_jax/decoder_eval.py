@@ -17,7 +17,7 @@ from mnerf_jax.decoder_images import EVAL_SEED, heldout_images, heldout_messages
 from mnerf_jax.hidden_encoder import encode, encode_batch
 
 if TYPE_CHECKING:
-    from mnerf_jax.decoder_train import DecoderTrainConfig
+    from mnerf_jax.decoder_config import DecoderTrainConfig
 
 
 def policy(cfg: DecoderTrainConfig) -> Callable[[jax.Array, jax.Array], jax.Array]:

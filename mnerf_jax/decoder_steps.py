@@ -17,7 +17,7 @@ from mnerf_jax.decoder_eval import policy
 from mnerf_jax.hidden_encoder import encode
 
 if TYPE_CHECKING:
-    from mnerf_jax.decoder_train import DecoderTrainConfig
+    from mnerf_jax.decoder_config import DecoderTrainConfig
 
 
 def _message_loss(logits: jax.Array, bits: jax.Array, temperature: float) -> jax.Array:

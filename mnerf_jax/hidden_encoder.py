@@ -11,7 +11,7 @@ import dataclasses
 import functools
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -19,10 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from mnerf_jax import decoder_io, dwt, informed
+from mnerf_jax.decoder_config import DecoderTrainConfig
 from mnerf_jax.errors import MnerfError
-
-if TYPE_CHECKING:
-    from mnerf_jax.decoder_train import DecoderTrainConfig
 
 
 class ConvBNReLU(nn.Module):
@@ -114,8 +112,6 @@ def _encode_eval(
 
 def load_encoder(path: str | Path) -> tuple[dict[str, Any], DecoderTrainConfig]:
     """The encoder variables and the training config from an ``encoder.npz`` written by a run."""
-    from mnerf_jax.decoder_train import DecoderTrainConfig  # the config module imports this one
-
     arrays, meta = {}, {}
     try:
         with np.load(path, allow_pickle=False) as data:

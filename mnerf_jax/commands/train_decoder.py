@@ -25,7 +25,7 @@ def _sides(text: str) -> tuple[int, ...]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from mnerf_jax.decoder import DECODER_INITS
-    from mnerf_jax.decoder_train import DecoderTrainConfig
+    from mnerf_jax.decoder_config import DecoderTrainConfig
 
     d = DecoderTrainConfig()
     parser.add_argument("--bits", type=int, required=True, help="message length L (8, 16, 32 or 48)")
@@ -135,7 +135,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mnerf_jax.decoder_train import DecoderTrainConfig, train_decoder
+    from mnerf_jax.decoder_config import DecoderTrainConfig
+    from mnerf_jax.decoder_train import train_decoder
 
     cfg = DecoderTrainConfig(
         bits=args.bits,
