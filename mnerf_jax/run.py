@@ -201,7 +201,7 @@ def register_run_kind(kind: str, loader: RunLoader) -> None:
 
 
 def _load_tensorf(run_dir: Path, marker: dict[str, Any], config: Config, step: int | None) -> LoadedRun:
-    from mnerf_jax import render, train
+    from mnerf_jax import fit_checkpoint, render
 
     store = CheckpointStore(run_dir, keep=config.train.keep_checkpoints, create=False)
     try:
@@ -209,7 +209,7 @@ def _load_tensorf(run_dir: Path, marker: dict[str, Any], config: Config, step: i
             raise RunError(
                 f"{run_dir} holds no checkpoint yet (was the fit interrupted before the first one?)"
             )
-        state, meta, _ = train.restore_state(config, store, step)
+        state, meta, _ = fit_checkpoint.restore_state(config, store, step)
     finally:
         store.close()
     return LoadedRun(

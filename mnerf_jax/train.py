@@ -28,10 +28,9 @@ so reading them never stalls XLA; the loop pauses only at events and checkpoints
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -41,10 +40,12 @@ import numpy as np
 
 from mnerf_jax import alpha_mask, field, grids, raymarch, render
 from mnerf_jax.budgets import SampleBudgets, estimate_density_count, refit_due
-from mnerf_jax.checkpoint import CheckpointStore, check_compatible, config_fingerprint
+from mnerf_jax.checkpoint import CheckpointStore, config_fingerprint
 from mnerf_jax.config import Config
 from mnerf_jax.data import Scene
 from mnerf_jax.errors import MnerfError
+from mnerf_jax.fit_checkpoint import checkpoint_tree, restore_state
+from mnerf_jax.fit_schedule import boundaries, filter_start, next_event, voxel_steps
 from mnerf_jax.fit_step import GRID_GROUPS, StepHyper, TrainState, make_optimizer, train_step
 from mnerf_jax.sampler import PermutationSampler, RaySet, training_rays
 
@@ -52,18 +53,6 @@ Array = jax.Array
 Params = Any
 
 STATE_VERSION = 1
-
-
-# --------------------------------------------------------------------------------------------------
-# Schedules
-# --------------------------------------------------------------------------------------------------
-
-
-def voxel_steps(config: Config) -> dict[int, int]:
-    """``{upsample step: voxel count after it}`` (TensoRF's log-linear schedule)."""
-    t = config.train
-    steps = sorted(t.upsample_steps)
-    return dict(zip(steps, grids.voxel_schedule(t.n_voxel_init, t.n_voxel_final, steps), strict=True))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -165,63 +154,6 @@ def upsample(config: Config, state: TrainState, n_voxels: int) -> TrainState:
 
 
 # --------------------------------------------------------------------------------------------------
-# Checkpoint layout
-# --------------------------------------------------------------------------------------------------
-
-
-def _checkpoint_tree(state: TrainState, ray_keep: np.ndarray | None) -> dict[str, Any]:
-    return {
-        "params": state.params,
-        "opt_state": state.opt_state,
-        "step": state.step,
-        "lr_base_step": state.lr_base_step,
-        "key": jax.random.key_data(state.key),
-        "geometry": raymarch.geometry_arrays(state.geometry),
-        # Packed keep-bits of the ray filter (training rays after the bbox drop); a placeholder byte
-        # before it (orbax cannot store empty arrays).
-        "ray_keep": np.packbits(ray_keep) if ray_keep is not None else np.zeros((1,), np.uint8),
-    }
-
-
-def state_target(config: Config, meta: Mapping[str, Any]) -> dict[str, Any]:
-    """The checkpoint tree structure (shapes do not matter) for restoring a TensoRF state."""
-    resolution = tuple(meta["resolution"])
-    params = jax.eval_shape(lambda: field.init_field(jax.random.key(0), config.model, resolution))
-    opt_state = jax.eval_shape(make_optimizer(StepHyper.from_config(config)).init, params)
-    scalar = jax.ShapeDtypeStruct((), jnp.float32)
-    return {
-        "params": params,
-        "opt_state": opt_state,
-        "step": jax.ShapeDtypeStruct((), jnp.int32),
-        "lr_base_step": jax.ShapeDtypeStruct((), jnp.int32),
-        "key": jax.ShapeDtypeStruct((2,), jnp.uint32),
-        "geometry": dict.fromkeys(raymarch.GEOMETRY_ARRAYS, scalar),
-        "ray_keep": jax.ShapeDtypeStruct((1,), jnp.uint8),
-    }
-
-
-def state_from_checkpoint(
-    tree: Mapping[str, Any], meta: Mapping[str, Any]
-) -> tuple[TrainState, np.ndarray | None]:
-    """``(TrainState, ray keep-mask or None)`` from a restored checkpoint tree and its meta."""
-    geometry = raymarch.geometry_from_checkpoint(tree["geometry"], meta["geometry"])
-    as_jnp = functools.partial(jax.tree.map, jnp.asarray)
-    state = TrainState(
-        params=as_jnp(tree["params"]),
-        opt_state=as_jnp(tree["opt_state"]),
-        step=jnp.asarray(tree["step"], jnp.int32),
-        lr_base_step=jnp.asarray(tree["lr_base_step"], jnp.int32),
-        key=jax.random.wrap_key_data(jnp.asarray(tree["key"], jnp.uint32)),
-        geometry=geometry,
-    )
-    keep = None
-    if meta.get("ray_keep_count") is not None:
-        n = int(meta["ray_keep_total"])
-        keep = np.unpackbits(np.asarray(tree["ray_keep"], np.uint8), count=n).astype(bool)
-    return state, keep
-
-
-# --------------------------------------------------------------------------------------------------
 # The fit loop
 # --------------------------------------------------------------------------------------------------
 
@@ -281,10 +213,10 @@ class _Trainer:
                     f"{len(rays)}: is --data the same scene?"
                 )
             self.ray_keep = ray_keep
-            self.use_rays(rays.select(ray_keep), _filter_start(config))
+            self.use_rays(rays.select(ray_keep), filter_start(config))
         self.mask_resolution = mask_resolution or state.resolution
         self.phase_start = phase_start
-        self.phase_end = _next_event(config, phase_start)
+        self.phase_end = next_event(config, phase_start)
         self.budgets = budgets if budgets is not None else SampleBudgets(density=0, colour=0)
         if budgets is None:
             self.start_phase()
@@ -373,7 +305,7 @@ class _Trainer:
             ran = True
         if ran:
             self.phase_start = done_step + 1
-            self.phase_end = _next_event(self.config, self.phase_start)
+            self.phase_end = next_event(self.config, self.phase_start)
             self.start_phase()
         return ran
 
@@ -416,43 +348,7 @@ class _Trainer:
         }
 
     def save(self, store: CheckpointStore) -> None:
-        store.save(int(self.state.step), _checkpoint_tree(self.state, self.ray_keep), self.checkpoint_meta())
-
-
-def restore_state(
-    config: Config, store: CheckpointStore, step: int | None = None
-) -> tuple[TrainState, dict[str, Any], np.ndarray | None]:
-    """``(state, meta, ray keep-mask)`` of a checkpoint, refused if written under another config."""
-    meta = store.read_meta(step)
-    if meta.get("kind", "tensorf") != "tensorf":
-        raise MnerfError(f"checkpoint in {store.directory} holds a {meta.get('kind')!r} model, not tensorf")
-    check_compatible(meta, config, store.directory.parent)
-    tree, meta = store.restore(state_target(config, meta), meta["step"])
-    state, keep = state_from_checkpoint(tree, meta)
-    return state, meta, keep
-
-
-def _next_event(config: Config, step: int) -> int:
-    """The first step count after ``step`` at which an event runs (``n_iters`` when none)."""
-    t = config.train
-    marks = [u + 1 for u in (*t.upsample_steps, *t.alpha_mask_steps) if u + 1 > step]
-    return min(marks, default=t.n_iters)
-
-
-def _filter_start(config: Config) -> int:
-    """The step from which training samples the alpha-filtered ray set."""
-    masks = sorted(config.train.alpha_mask_steps)
-    return masks[1] + 1 if len(masks) > 1 else 0
-
-
-def _boundaries(config: Config, start: int, stop: int) -> list[int]:
-    """Step counts at which the loop pauses: after events, at checkpoints, at ``stop``."""
-    t = config.train
-    marks = {u + 1 for u in (*t.upsample_steps, *t.alpha_mask_steps)}
-    every = max(t.checkpoint_every, 1)
-    marks |= set(range(every, stop, every))
-    marks.add(stop)
-    return sorted(m for m in marks if start < m <= stop)
+        store.save(int(self.state.step), checkpoint_tree(self.state, self.ray_keep), self.checkpoint_meta())
 
 
 def fit(
@@ -510,7 +406,7 @@ def fit(
                 on_step(step, metrics)
 
         t0 = trainer.session_start = time.perf_counter()
-        for mark in _boundaries(config, start, stop):
+        for mark in boundaries(config, start, stop):
             trainer.run_segment(mark, record)
             trainer.apply_events(mark - 1)
             if store is not None and (mark % max(config.train.checkpoint_every, 1) == 0 or mark == stop):
