@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -13,11 +13,9 @@ import numpy as np
 
 from mnerf_jax import augment, dwt, informed
 from mnerf_jax import decoder as dec
+from mnerf_jax.decoder_config import DecoderTrainConfig
 from mnerf_jax.decoder_images import EVAL_SEED, heldout_images, heldout_messages
 from mnerf_jax.hidden_encoder import encode, encode_batch
-
-if TYPE_CHECKING:
-    from mnerf_jax.decoder_config import DecoderTrainConfig
 
 
 def policy(cfg: DecoderTrainConfig) -> Callable[[jax.Array, jax.Array], jax.Array]:

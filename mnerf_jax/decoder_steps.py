@@ -5,7 +5,7 @@ watermark) and encoder-only through the frozen whitened decoder. Each is ``(stat
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -13,11 +13,9 @@ import optax
 
 from mnerf_jax import decoder as dec
 from mnerf_jax import dwt, informed, losses
+from mnerf_jax.decoder_config import DecoderTrainConfig
 from mnerf_jax.decoder_eval import policy
 from mnerf_jax.hidden_encoder import encode
-
-if TYPE_CHECKING:
-    from mnerf_jax.decoder_config import DecoderTrainConfig
 
 
 def _message_loss(logits: jax.Array, bits: jax.Array, temperature: float) -> jax.Array:
