@@ -177,6 +177,7 @@ def colour_mlp(
     cfg: ModelConfig,
     extra_last: Array | None = None,
     extra_first: Array | None = None,
+    extra_logits: Array | None = None,
 ) -> Array:
     """MLP_Fea colour ``[P, 3]`` in (0, 1).
 
@@ -189,6 +190,9 @@ def colour_mlp(
         ``mlp["out_extra"] [E, 3]`` of the last layer; or ``[P, K, E]``, K sets of extra features that share
         everything before the last layer: the output is then ``[P, 3K]`` (set ``k`` in columns ``3k:3k+3``).
       extra_first: optional ``[P, E]``, concatenated to the input and met by ``mlp["in_extra"] [E, W]``.
+      extra_logits: optional ``[P, K, 3]``, added to the last layer's output (before the sigmoid) K times:
+        what ``extra_last [P, K, E]`` contributes, for a caller that can form it without that tensor.
+        The output is then ``[P, 3K]``, as for ``extra_last [P, K, E]``.
 
     With both extras None this is exactly TensoRF's MLPRender_Fea.
     """
@@ -201,7 +205,10 @@ def colour_mlp(
     out = narrow_matmul(h, mlp["w2"]) + mlp["b2"]
     if extra_last is not None and extra_last.ndim == 3:
         # K renders of one sample set: the hidden layers once, the last layer's extra rows per set.
-        out = out[:, None, :] + narrow_matmul(extra_last, mlp["out_extra"])
+        extra_logits = narrow_matmul(extra_last, mlp["out_extra"])
+        extra_last = None
+    if extra_logits is not None:
+        out = out[:, None, :] + extra_logits
         return jax.nn.sigmoid(out).reshape(out.shape[0], -1)
     if extra_last is not None:
         out = out + narrow_matmul(extra_last, mlp["out_extra"])
