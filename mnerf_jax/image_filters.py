@@ -10,6 +10,8 @@ renderer changes them.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -50,12 +52,34 @@ def filter_per_image(images: jax.Array, kernels: jax.Array) -> jax.Array:
     return out.reshape(h, w, b, c).transpose(2, 0, 1, 3)
 
 
-def _patches(images: jax.Array, kernel: int) -> jax.Array:
-    """``[B, H, W, C]`` → ``[B, H, W, C, kernel²]``: the reflect-padded neighbourhood of every pixel."""
+def _neighbours(images: jax.Array, kernel: int) -> list[jax.Array]:
+    """``kernel²`` arrays ``[B, H, W, C]``: each pixel's reflect-padded neighbour at one offset."""
     h, w = images.shape[1:3]
     x = pad_reflect(images, kernel // 2)
-    views = [x[:, i : i + h, j : j + w] for i in range(kernel) for j in range(kernel)]
-    return jnp.stack(views, axis=-1)
+    return [x[:, i : i + h, j : j + w] for i in range(kernel) for j in range(kernel)]
+
+
+@functools.cache
+def _sorting_network(n: int) -> tuple[tuple[int, int], ...]:
+    """Compare-exchange pairs ``(i, j)``, ``i < j``, of Batcher's odd-even merge sort of ``n`` values.
+
+    Built for the next power of two; pairs that reach past ``n`` are dropped (as if the missing values were
+    +inf, for which they are no-ops).
+    """
+    size = 1 << max(n - 1, 0).bit_length()
+    pairs = []
+    p = 1
+    while p < size:
+        k = p
+        while k >= 1:
+            for j in range(k % p, size - k, 2 * k):
+                for i in range(min(k, size - j - k)):
+                    a, b = i + j, i + j + k
+                    if a // (2 * p) == b // (2 * p) and b < n:
+                        pairs.append((a, b))
+            k //= 2
+        p *= 2
+    return tuple(pairs)
 
 
 def box_blur(images: jax.Array, kernel: int) -> jax.Array:
@@ -70,10 +94,22 @@ def box_blur(images: jax.Array, kernel: int) -> jax.Array:
 def median_blur(images: jax.Array, kernel: int) -> jax.Array:
     """Median over ``kernel × kernel`` neighbourhoods of ``[B, H, W, C]`` (odd ``kernel``, reflect borders).
 
-    A sort of the extracted patches: the gradient reaches the pixel that was selected as the median.
-    Memory is ``kernel²`` times the image.
+    The value comes from a sorting network of elementwise min / max over the ``kernel²`` shifted images (XLA
+    keeps only the comparators the middle output needs); the gradient reaches the neighbour(s) equal to the
+    median (shared among ties) through a mask. ``jnp.sort`` over stacked patches, with its own derivative
+    (a gather and a scatter of the permutation), took 445 ms forward+backward for 16 images of 100² at
+    kernel 3 on 2 cores, and its forward alone 390 ms.
     """
-    return jnp.sort(_patches(images, kernel), axis=-1)[..., kernel * kernel // 2]
+    views = _neighbours(images, kernel)
+    values = list(views)
+    for a, b in _sorting_network(len(values)):
+        values[a], values[b] = jnp.minimum(values[a], values[b]), jnp.maximum(values[a], values[b])
+    median = jax.lax.stop_gradient(values[len(values) // 2])
+    chosen = [jax.lax.stop_gradient(v == median).astype(images.dtype) for v in views]
+    count = sum(chosen)
+    # Exactly the median in value; d(out)/d(neighbour) = chosen / count.
+    moved = sum((v - jax.lax.stop_gradient(v)) * c for v, c in zip(views, chosen, strict=True))
+    return median + moved / count
 
 
 def posterize(images: jax.Array, bits: int) -> jax.Array:

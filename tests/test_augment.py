@@ -8,9 +8,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import ndimage
 
-from mnerf_jax import augment
+from mnerf_jax import augment, image_filters
 from mnerf_jax.augment import AUGMENTATION_NAMES, AUGMENTATIONS, PARAMS, STRENGTHS
 from mnerf_jax.jpeg import jpeg
 
@@ -143,6 +145,32 @@ def test_median_and_box_blur_match_scipy(kernel):
     size = (1, kernel, kernel, 1)
     np.testing.assert_allclose(median, ndimage.median_filter(x, size=size, mode="mirror"), atol=1e-6)
     np.testing.assert_allclose(box, ndimage.uniform_filter(x, size=size, mode="mirror"), atol=1e-5)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 49), st.integers(0, 2**32 - 1), st.booleans())
+def test_median_sorting_network_sorts(n, seed, ties):
+    # Batcher's network, cut to n values, sorts any input (ties included) by compare-exchanges alone.
+    rng = np.random.default_rng(seed)
+    values = rng.integers(0, 3, n) if ties else rng.random(n)
+    out = list(values)
+    for a, b in image_filters._sorting_network(n):
+        assert 0 <= a < b < n
+        out[a], out[b] = min(out[a], out[b]), max(out[a], out[b])
+    np.testing.assert_array_equal(out, np.sort(values))
+
+
+@pytest.mark.parametrize("kernel", [3, 5])
+def test_median_blur_with_ties_matches_scipy_and_shares_the_gradient(kernel):
+    x = np.round(np.asarray(_images((2, 9, 10, 3))) * 4) / 4  # five levels: ties everywhere
+    expected = ndimage.median_filter(x, size=(1, kernel, kernel, 1), mode="mirror")
+    np.testing.assert_array_equal(augment.median_blur(jnp.asarray(x), kernel), expected)
+    grad = np.asarray(jax.grad(lambda y: augment.median_blur(y, kernel)[0, 4, 4, 1])(jnp.asarray(x)))
+    near = slice(4 - kernel // 2, 5 + kernel // 2)
+    window = x[0, near, near, 1]
+    ties = window == np.median(window)
+    np.testing.assert_allclose(grad.sum(), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(grad[0, near, near, 1], ties / ties.sum(), rtol=1e-6)
 
 
 def test_median_gradient_reaches_only_the_selected_pixel():
