@@ -17,7 +17,8 @@ import numpy as np
 
 from mnerf_jax import grids
 from mnerf_jax.raymarch import Geometry, aabb_entry_exit, alpha_mask_lookup, sample_along_rays
-from mnerf_jax.render import Array, FieldFns, Params, jit_cpu_tuned
+from mnerf_jax.render import Array, FieldFns, Params
+from mnerf_jax.xla_cpu import jit_cpu_tuned
 
 
 @jit_cpu_tuned(static_argnums=(0, 3, 5))

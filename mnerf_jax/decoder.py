@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mnerf_jax import dwt
+from mnerf_jax import dwt, xla_cpu
 from mnerf_jax.errors import MnerfError
 
 SUPPORTED_BITS = (8, 16, 32, 48)
@@ -205,15 +205,16 @@ def _compiled_init(bits: int, channels: int, depth: int) -> Any:
     return jax.jit(HiddenDecoder(bits=bits, channels=channels, depth=depth).init)
 
 
-# Jitted (a whole-network compile instead of op-by-op dispatch); inside other jitted code they simply inline.
-@functools.partial(jax.jit, static_argnames=("whiten",))
+# Jitted (a whole-network compile instead of op-by-op dispatch), with the XLA:CPU options that keep its
+# convolutions out of YNNPACK fusions (xla_cpu); inside other jitted code they simply inline.
+@xla_cpu.jit_cpu_tuned(static_argnames=("whiten",))
 def apply_ll2(variables: Mapping[str, Any], ll2: jax.Array, whiten: bool = True) -> jax.Array:
     """Eval-mode logits (BatchNorm running statistics) of LL2 sub-bands ``[B, h, w, 3]`` → ``[B, bits]``."""
     variables = _module_variables(variables)
     return module_for(variables).apply(variables, ll2, train=False, whiten=whiten)
 
 
-@jax.jit
+@xla_cpu.jit_cpu_tuned
 def apply_ll2_train(variables: Mapping[str, Any], ll2: jax.Array) -> tuple[jax.Array, Any]:
     """Train-mode logits ``[B, bits]`` (batch statistics) and the updated ``batch_stats``."""
     variables = _module_variables(variables)
@@ -221,7 +222,7 @@ def apply_ll2_train(variables: Mapping[str, Any], ll2: jax.Array) -> tuple[jax.A
     return logits, updates["batch_stats"]
 
 
-@functools.partial(jax.jit, static_argnames=("wavelet",))
+@xla_cpu.jit_cpu_tuned(static_argnames=("wavelet",))
 def decode_logits(variables: Mapping[str, Any], images: jax.Array, wavelet: str = "bior4.4") -> jax.Array:
     """Eval-mode logits of rendered images ``[B, H, W, 3]`` in [0, 1] → ``[B, bits]`` (LL2 taken here)."""
     return apply_ll2(variables, dwt.ll2(images, wavelet))

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import optax
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import dwt, informed, losses
+from mnerf_jax import dwt, informed, losses, xla_cpu
 from mnerf_jax.decoder_config import DecoderTrainConfig
 from mnerf_jax.decoder_eval import policy
 from mnerf_jax.hidden_encoder import encode
@@ -112,7 +112,7 @@ def make_joint_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation, a
         new["opt"] = opt
         return _unless_finite(grads, new, state), _metrics(loss, aux, grads)
 
-    return jax.jit(step, donate_argnums=0)
+    return xla_cpu.jit_cpu_tuned(step, donate_argnums=0)
 
 
 def make_finetune_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation) -> Callable:
@@ -140,7 +140,7 @@ def make_finetune_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation
         new = _update_part(tx, state, "encoder", "opt_ft", grads, aux["enc_stats"])
         return new, _metrics(loss, aux, grads)
 
-    return jax.jit(step, donate_argnums=0)
+    return xla_cpu.jit_cpu_tuned(step, donate_argnums=0)
 
 
 def make_informed_step(
@@ -173,4 +173,4 @@ def make_informed_step(
         new = _update_part(tx, state, "decoder", "opt_inf", grads, aux["dec_stats"])
         return new, _metrics(loss, aux, grads)
 
-    return jax.jit(step, donate_argnums=0)
+    return xla_cpu.jit_cpu_tuned(step, donate_argnums=0)

@@ -7,7 +7,6 @@ into chunks of ``batch_size`` images (the last one padded): memory stays bounded
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -17,13 +16,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import decoder_io, dwt
+from mnerf_jax import decoder_io, dwt, xla_cpu
 from mnerf_jax.errors import MnerfError
 
 PIXEL_BUDGET = 1 << 19  # image pixels per decoder call (chunks of 52 images at 100², 1 at 800²)
 
 
-@functools.partial(jax.jit, static_argnames=("wavelet",))
+@xla_cpu.jit_cpu_tuned(static_argnames=("wavelet",))
 def _decode_chunk(variables: Mapping[str, Any], images: jax.Array, wavelet: str) -> jax.Array:
     return dec.apply_ll2(variables, dwt.ll2(images, wavelet))
 

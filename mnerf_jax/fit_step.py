@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from mnerf_jax import grids, raymarch, render
+from mnerf_jax import grids, raymarch, render, xla_cpu
 from mnerf_jax.config import Config
 
 Array = jax.Array
@@ -172,8 +172,8 @@ def _loss_fn(
     return loss, aux
 
 
-# The top-level step takes render.xla_compiler_options() (XLA:CPU fusion settings).
-@render.jit_cpu_tuned(static_argnames=("fns", "hyper", "density_budget", "colour_budget"))
+# The top-level step takes xla_cpu.xla_compiler_options() (XLA:CPU fusion settings).
+@xla_cpu.jit_cpu_tuned(static_argnames=("fns", "hyper", "density_budget", "colour_budget"))
 def train_step(
     state: TrainState,
     rays_o: Array,

@@ -30,7 +30,6 @@ Points reach the field functions normalised to [-1, 1] over ``geometry.aabb``.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -40,57 +39,12 @@ import jax.numpy as jnp
 from mnerf_jax import field, grids
 from mnerf_jax.config import ModelConfig
 from mnerf_jax.raymarch import Geometry, alpha_mask_lookup, inside_box, sample_along_rays
+from mnerf_jax.xla_cpu import jit_cpu_tuned
 
 Array = jax.Array
 Params = Any
 
 WEIGHT_THRESHOLD = 1e-4  # TensoRF's rayMarch_weight_thres
-
-# XLA:CPU (jax 0.10) hands elementwise+reduce subgraphs to YNNPACK fusions, which materialise every
-# gathered [P, C] operand: the density forward of 1 M points took ~1.5 s instead of ~35 ms, and
-# evaluation-mode render_rays (4096 rays, 128^3, alpha mask) 440 ms instead of 215 ms; training steps
-# were about equally fast either way. Disabling them per compilation restores XLA's own fused loops.
-_CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
-
-
-@functools.cache
-def xla_compiler_options() -> dict[str, str]:
-    """Compiler options for ``jax.jit(..., compiler_options=...)`` of rendering code.
-
-    On CPU, the options that keep XLA from routing sampled-feature arithmetic through YNNPACK
-    fusions, if this XLA accepts them; ``{}`` elsewhere. Pass them to the ``jax.jit`` of any function
-    that calls ``render_rays`` (the options of an inner jit are ignored when it is inlined).
-    """
-    if jax.default_backend() != "cpu":
-        return {}
-    try:
-        jax.jit(lambda x: x + 1, compiler_options=_CPU_OPTIONS).lower(jnp.zeros(2)).compile()
-    except Exception:  # an XLA without this option: keep its defaults
-        return {}
-    return dict(_CPU_OPTIONS)
-
-
-def jit_cpu_tuned(fun: Callable | None = None, **kwargs: Any) -> Any:
-    """``jax.jit`` with ``xla_compiler_options()`` when called at top level (chosen at the first call).
-
-    Inside another transformation (arguments are tracers) the plain ``jax.jit`` is used: JAX accepts
-    compiler options only on the outermost jit, whose owner should pass ``xla_compiler_options()``.
-    """
-    if fun is None:
-        return functools.partial(jit_cpu_tuned, **kwargs)
-    plain = jax.jit(fun, **kwargs)
-    top: list[Callable] = []
-
-    @functools.wraps(fun)
-    def wrapper(*args: Any, **kw: Any) -> Any:
-        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kw))):
-            return plain(*args, **kw)
-        if not top:
-            top.append(jax.jit(fun, compiler_options=xla_compiler_options(), **kwargs))
-        return top[0](*args, **kw)
-
-    return wrapper
-
 
 # --------------------------------------------------------------------------------------------------
 # Field functions and geometry

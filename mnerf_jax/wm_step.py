@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from mnerf_jax import augment, dwt, losses, raymarch, render, watermark
+from mnerf_jax import augment, dwt, losses, raymarch, render, watermark, xla_cpu
 from mnerf_jax import decoder as decoder_lib
 from mnerf_jax import metrics as metrics_lib
 from mnerf_jax.config import ModelConfig, WatermarkConfig
@@ -259,9 +259,9 @@ def make_image_loss(
     return image_loss
 
 
-# The top-level step takes render.xla_compiler_options(), as the fit's step does: without them XLA:CPU routes
+# The top-level step takes xla_cpu.xla_compiler_options(), as the fit's step does: without them XLA:CPU routes
 # the renders' sampled-feature arithmetic through YNNPACK fusions (lego 1/8, 16 IDs: 1.87 -> 1.49 s a step).
-@render.jit_cpu_tuned(static_argnames=("spec",))
+@xla_cpu.jit_cpu_tuned(static_argnames=("spec",))
 def embed_step(
     state: EmbedState,
     geometry: raymarch.Geometry,

@@ -39,7 +39,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.scipy.ndimage import map_coordinates  # noqa: E402
 
-from mnerf_jax import alpha_mask, budgets, field, grid_volume, grids, raymarch, render  # noqa: E402
+from mnerf_jax import alpha_mask, budgets, field, grid_volume, grids, raymarch, render, xla_cpu  # noqa: E402
 from mnerf_jax.config import ModelConfig  # noqa: E402
 
 
@@ -288,10 +288,10 @@ def main() -> None:
     parser.add_argument(
         "--xla-defaults",
         action="store_true",
-        help="compile without render.xla_compiler_options() (for comparison)",
+        help="compile without xla_cpu.xla_compiler_options() (for comparison)",
     )
     args = parser.parse_args()
-    options = {} if args.xla_defaults else render.xla_compiler_options()
+    options = {} if args.xla_defaults else xla_cpu.xla_compiler_options()
     parts = args.only or ["compositing", "sampling", "density", "mlp", "render"]
     results: dict[str, object] = {
         "jax": jax.__version__,
