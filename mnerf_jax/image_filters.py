@@ -33,11 +33,17 @@ def pad_reflect(images: jax.Array, radius: int) -> jax.Array:
 def filter_per_image(images: jax.Array, kernels: jax.Array) -> jax.Array:
     """Correlate each image ``[B, H, W, C]`` with its own kernel ``[B, k, k]`` (odd k), reflect borders.
 
-    The batch is folded into the channels so that this is one depthwise convolution.
+    3×3 kernels: a sum of 9 shifted images, each scaled per image. Larger ones: one depthwise convolution
+    with the batch folded into the channels. For 16 images of 100² on 2 cores, forward+backward (image and
+    kernel gradients): k = 3 43 ms shifted against 71 ms convolved; k = 5 183 against 91 ms; k = 9 1,183
+    against 265 ms (XLA:CPU does not fuse the shifted sums' backward well beyond a few terms).
     """
     b, h, w, c = images.shape
     k = kernels.shape[-1]
     x = pad_reflect(images, k // 2)
+    if k <= 3:
+        weights = kernels.astype(images.dtype)[:, :, :, None, None, None]  # [B, k, k, 1, 1, 1]
+        return sum(x[:, i : i + h, j : j + w] * weights[:, i, j] for i in range(k) for j in range(k))
     x = x.transpose(1, 2, 0, 3).reshape(1, h + k - 1, w + k - 1, b * c)
     rhs = jnp.repeat(kernels.astype(images.dtype), c, axis=0).transpose(1, 2, 0)[:, :, None, :]
     out = jax.lax.conv_general_dilated(
