@@ -48,9 +48,9 @@ from mnerf_jax.image_filters import (
     box_blur,
     clip_unit,
     filter_per_image,
+    gaussian_blur_per_image,
     median_blur,
     motion_blur_kernel,
-    pad_reflect,
     posterize,
     sharpness,
 )
@@ -212,9 +212,7 @@ def _gaussian_blur(key: jax.Array, images: jax.Array, strength: str) -> jax.Arra
     p = _params("gaussian_blur", strength)
     kernel = p["kernel"]
     sigma = _uniform(key, images.shape[:1], *p["sigma"])
-    padded = pad_reflect(images, kernel // 2)
-    blur = functools.partial(pix.gaussian_blur, kernel_size=kernel, padding="VALID")
-    return jax.vmap(lambda x, s: blur(x, s))(padded, sigma)
+    return gaussian_blur_per_image(images, sigma, kernel)  # dm-pix's filter, faster per image (its docstring)
 
 
 def _gaussian_noise(key: jax.Array, images: jax.Array, strength: str) -> jax.Array:

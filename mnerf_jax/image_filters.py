@@ -58,6 +58,24 @@ def filter_per_image(images: jax.Array, kernels: jax.Array) -> jax.Array:
     return out.reshape(h, w, b, c).transpose(2, 0, 1, 3)
 
 
+def gaussian_blur_per_image(images: jax.Array, sigma: jax.Array, kernel: int) -> jax.Array:
+    """Blur each image ``[B, H, W, C]`` with its own Gaussian ``sigma [B]`` (px): dm-pix's separable
+    ``kernel``-tap filter (``exp(−t²/2σ²)``, normalised), reflect borders.
+
+    Separable sums of shifted images, each scaled per image. dm-pix's ``gaussian_blur`` vmapped over the batch
+    (per-image depthwise convolutions) computes the same and took 96 ms forward+backward for 16 images of 100²
+    at 3 taps on 2 cores, against 7 ms this way; it remains the test oracle.
+    """
+    b, h, w, _ = images.shape
+    r = kernel // 2
+    taps = jnp.arange(-r, r + 1, dtype=images.dtype)
+    weights = jnp.exp(-(taps[None] ** 2) / (2.0 * jnp.asarray(sigma, images.dtype)[:, None] ** 2))
+    weights = (weights / jnp.sum(weights, axis=-1, keepdims=True))[:, :, None, None, None]  # [B, k, 1, 1, 1]
+    x = pad_reflect(images, r)
+    x = sum(x[:, i : i + h] * weights[:, i] for i in range(kernel))
+    return sum(x[:, :, j : j + w] * weights[:, j] for j in range(kernel))
+
+
 def _neighbours(images: jax.Array, kernel: int) -> list[jax.Array]:
     """``kernel²`` arrays ``[B, H, W, C]``: each pixel's reflect-padded neighbour at one offset."""
     h, w = images.shape[1:3]
