@@ -1,0 +1,84 @@
+"""Seconds per embedding step on this machine, and the wall time ``mnerf embed`` would take.
+
+    python scripts/bench_embed_step.py --run RUN [--data PATH] [--num-ids 16] [--bits 16]
+                                       [--phase1 6] [--phase2 8] [--set key=value ...] [--json]
+
+RUN is a fitted TensoRF (``mnerf fit``). The script runs ``mnerf embed``'s own code (``embed.embed``, the
+shipped decoder, the run's training views) into a temporary folder for ``--phase1`` phase-1 and ``--phase2``
+phase-2 steps, and times every step (the wall time between two steps' callbacks, so budget refits, redone
+steps and checkpoints are inside it). A step's cost does not depend on how many steps the schedule has, so
+the medians of each phase (its first step left out: compilation) times the schedule that the same
+``--num-ids`` and ``--set`` resolve to (``watermark.phase_steps``), plus the measured start-up, give the
+projected wall time of the whole embedding. The protocol of the README (lego at 1/8, 16 IDs x 16 bits):
+
+    python scripts/bench_embed_step.py --run LEGO_RUN --num-ids 16 --bits 16
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+
+def bench(run: str, data: str | None, num_ids: int, bits: int, phase1: int, phase2: int,
+          overrides: list[str]) -> dict:  # fmt: skip
+    from mnerf_jax import embed, watermark
+
+    source = embed.load_source(run)
+    cfg = embed.resolve_config(source, None, overrides, num_ids, bits).watermark
+    schedule = watermark.phase_steps(cfg)
+    short = [*overrides, f"watermark.phase1_steps={phase1}", f"watermark.phase2_steps={phase2}"]
+    stamps: list[float] = []
+    phases: list[int] = []
+
+    def on_step(step: int, metrics: dict[str, float]) -> None:
+        stamps.append(time.perf_counter())
+        phases.append(int(metrics["phase"]))
+
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        result = embed.embed(run, Path(tmp) / "wm", num_ids, bits, overrides=short, data_path=data,
+                             progress=False, on_step=on_step)  # fmt: skip
+    seconds = [b - a for a, b in zip([start, *stamps[:-1]], stamps, strict=True)]
+    per_phase = {p: [s for s, q in zip(seconds, phases, strict=True) if q == p] for p in (1, 2)}
+    median = {p: statistics.median(v[1:]) if len(v) > 1 else float("nan") for p, v in per_phase.items()}
+    # Start-up (loading, keys, clean references) and each phase's first step, compilation included.
+    overhead = sum(v[0] - median[p] for p, v in per_phase.items() if v)
+    projected = overhead + schedule[0] * median[1] + schedule[1] * median[2]
+    return {
+        "num_ids": num_ids, "bits": bits, "ids_per_step": watermark.ids_per_step_of(cfg, num_ids),
+        "phase1_s_per_step": round(median[1], 3), "phase2_s_per_step": round(median[2], 3),
+        "first_steps_s": [round(v[0], 1) for v in per_phase.values() if v],
+        "redone_steps": result.redone_steps, "schedule": list(schedule),
+        "projected_s": round(projected), "projected_h": round(projected / 3600, 2),
+    }  # fmt: skip
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--run", required=True, help="a fitted TensoRF run (mnerf fit)")
+    parser.add_argument("--data", default=None, help="scene directory (default: the run's)")
+    parser.add_argument("--num-ids", type=int, default=16)
+    parser.add_argument("--bits", type=int, default=16)
+    parser.add_argument("--phase1", type=int, default=6, help="phase-1 steps to time (the first compiles)")
+    parser.add_argument("--phase2", type=int, default=8, help="phase-2 steps to time (the first compiles)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override")
+    parser.add_argument("--json", action="store_true", help="one JSON line")
+    args = parser.parse_args()
+    row = bench(args.run, args.data, args.num_ids, args.bits, args.phase1, args.phase2, args.set)
+    if args.json:
+        print(json.dumps(row))
+        return
+    p1, p2 = row["schedule"]
+    print(f"{row['num_ids']} IDs x {row['bits']} bits, {row['ids_per_step']} per step: phase 1 "
+          f"{row['phase1_s_per_step']} s/step, phase 2 {row['phase2_s_per_step']} s/step (first steps "
+          f"{row['first_steps_s']} s, {row['redone_steps']} redone); the schedule {p1:,} + {p2:,} steps -> "
+          f"{row['projected_s']:,} s ({row['projected_h']} h) projected")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
