@@ -174,9 +174,41 @@ def vgg_perceptual_loss(x: jax.Array, y: jax.Array, params: Any = None) -> jax.A
 SSIM_WINDOW = 11  # dm-pix's default Gaussian window: images need H, W >= this
 
 
+SSIM_SIGMA = 1.5  # dm-pix's default
+
+
+@functools.cache
+def _ssim_band(n: int) -> np.ndarray:
+    """``[n − 10, n]``: dm-pix's normalised 11-tap SSIM Gaussian at every valid offset, so that its "valid"
+    1-D convolution along an axis of length ``n`` is a product with this matrix."""
+    r = SSIM_WINDOW // 2
+    taps = np.exp(-0.5 * ((np.arange(SSIM_WINDOW) - r) / SSIM_SIGMA) ** 2)
+    taps /= taps.sum()
+    band = np.zeros((n - SSIM_WINDOW + 1, n), np.float32)
+    for i in range(n - SSIM_WINDOW + 1):
+        band[i, i : i + SSIM_WINDOW] = taps
+    return band
+
+
+def _ssim_filter(z: jax.Array) -> jax.Array:
+    """dm-pix's separable SSIM filter of ``z [..., H, W, C]`` ("valid"), as two matrix products.
+
+    dm-pix filters with ``jnp.convolve`` vmapped over rows and columns: for 16 renders of 50² (one patch's
+    losses on the lego protocol, 16 IDs; four patches a step) SSIM took 50 ms forward+backward on 2 cores.
+    """
+    h, w = z.shape[-3], z.shape[-2]
+    hi = jax.lax.Precision.HIGHEST
+    z = jnp.einsum("...hwc,vw->...hvc", z, jnp.asarray(_ssim_band(w)), precision=hi)
+    return jnp.einsum("...hwc,uh->...uwc", z, jnp.asarray(_ssim_band(h)), precision=hi)
+
+
 def ssim_loss(x: jax.Array, y: jax.Array) -> jax.Array:
-    """``1 − SSIM`` (dm-pix: 11×11 Gaussian window, σ 1.5, data range 1), mean over images; H, W ≥ 11."""
-    return 1.0 - jnp.mean(pix.ssim(jnp.asarray(x, jnp.float32), jnp.asarray(y, jnp.float32), max_val=1.0))
+    """``1 − SSIM`` (dm-pix: 11×11 Gaussian window, σ 1.5, data range 1), mean over images; H, W ≥ 11.
+
+    dm-pix's SSIM with its own Gaussian filter computed as matrix products (:func:`_ssim_filter`).
+    """
+    x, y = jnp.asarray(x, jnp.float32), jnp.asarray(y, jnp.float32)
+    return 1.0 - jnp.mean(pix.ssim(x, y, max_val=1.0, filter_fn=_ssim_filter))
 
 
 def total_variation(images: jax.Array) -> jax.Array:

@@ -131,6 +131,19 @@ def test_ssim_loss():
     assert 0 < float(value) < 2 and bool(jnp.all(jnp.isfinite(grad)))
 
 
+@pytest.mark.parametrize("shape", [(1, 11, 11), (1, 23, 17), (2, 40, 33)])
+def test_ssim_loss_is_dm_pix_ssim(shape):
+    # The loss filters with matrix products; dm-pix's own SSIM (its convolutions) is the oracle.
+    import dm_pix as pix
+
+    x = _images((*shape, 3))
+    y = jnp.clip(x + 0.1 * jax.random.normal(jax.random.key(1), x.shape), 0, 1)
+    reference = lambda a: 1.0 - jnp.mean(pix.ssim(a, x, max_val=1.0))  # noqa: E731
+    np.testing.assert_allclose(losses.ssim_loss(y, x), reference(y), atol=2e-5)  # float32 summation order
+    expected = np.asarray(jax.grad(reference)(y))
+    np.testing.assert_allclose(jax.grad(losses.ssim_loss)(y, x), expected, atol=2e-3 * np.abs(expected).max())
+
+
 def test_total_variation_matches_numpy_and_is_zero_for_constants():
     x = np.asarray(_images((2, 9, 11, 3)))
     expected = 2 * (np.mean(np.diff(x, axis=1) ** 2) + np.mean(np.diff(x, axis=2) ** 2))
