@@ -206,12 +206,11 @@ def colour_mlp(
     if extra_last is not None and extra_last.ndim == 3:
         # K renders of one sample set: the hidden layers once, the last layer's extra rows per set.
         extra_logits = narrow_matmul(extra_last, mlp["out_extra"])
-        extra_last = None
+    elif extra_last is not None:
+        out = out + narrow_matmul(extra_last, mlp["out_extra"])
     if extra_logits is not None:
         out = out[:, None, :] + extra_logits
         return jax.nn.sigmoid(out).reshape(out.shape[0], -1)
-    if extra_last is not None:
-        out = out + narrow_matmul(extra_last, mlp["out_extra"])
     return jax.nn.sigmoid(out)
 
 
