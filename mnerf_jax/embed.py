@@ -188,6 +188,30 @@ def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequen
     return config
 
 
+def watermark_defaults_drift(run_dir: str | Path) -> list[str]:
+    """Fields where the ``[watermark]`` section a fitted run recorded differs from its preset's today.
+
+    A fit records the whole config, watermark section included, and ``embed --from`` takes that section as
+    its base (the run is the record). After an upgrade that changed a default, the recorded value is the
+    old one: ``["lr_decoder 0.0001 (today 0.001)", ...]``, for a note. ``[]`` when they agree, when the
+    run's preset is not a shipped one, or when ``run_dir`` is not a fitted run (``embed`` says so).
+    """
+    run_dir = Path(run_dir)
+    marker = runs.read_marker(run_dir) if run_dir.is_dir() else None
+    if marker is None or marker.get("kind") != runs.TENSORF_KIND:
+        return []
+    recorded = runs.read_run_config(run_dir)
+    try:
+        today = config_lib.load_preset(recorded.name).watermark
+    except config_lib.ConfigError:
+        return []
+    return [
+        f"{f.name} {getattr(recorded.watermark, f.name)!r} (today {getattr(today, f.name)!r})"
+        for f in dataclasses.fields(today)
+        if getattr(recorded.watermark, f.name) != getattr(today, f.name)
+    ]
+
+
 def _has_checkpoints(out: Path) -> bool:
     folder = out / "checkpoints"
     return folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())

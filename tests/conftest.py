@@ -17,12 +17,21 @@ import pytest
 
 # Tests run on CPU; keep XLA from grabbing an accelerator if one happens to be present.
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-# Most tests run a compiled program a few times: XLA's backend optimisation level 1 (of 3) compiles faster
-# and runs a little slower. On the lego end-to-end test: 156 → 133 s (compilation 77 → 52 s); level 0 took
-# 195 s. Tests compare paths compiled alike, or within tolerances. Left alone when XLA_FLAGS names a level.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+# Compilation dominates the suite. XLA's backend optimisation level 0 (of 3) compiles the tests' own small
+# programs fastest, but runs the library's hot programs (renders, train and embedding steps, the decoder:
+# those jitted through xla_cpu.jit_cpu_tuned) far slower: with level 0 everywhere the tiny watermarked run
+# took 365 s to build instead of 122 s. So: level 0 by default, level 1 for the hot programs (set in
+# pytest_configure through xla_cpu.CPU_OPTIONS). Two workers: 12 min 23 s with level 1 everywhere, 11 min 6 s
+# so. Left alone when the user's XLA_FLAGS names a level (the decision is passed to the pytest-xdist workers,
+# which inherit the flags set here).
+OPT_LEVEL_FLAG = "xla_backend_optimization_level"
+_OPT_LEVELS_ENV = "MNERF_TEST_SETS_OPT_LEVELS"
+if _OPT_LEVELS_ENV not in os.environ:
     _flags = os.environ.get("XLA_FLAGS", "")
-    os.environ["XLA_FLAGS"] = f"{_flags} --xla_backend_optimization_level=1".strip()
+    os.environ[_OPT_LEVELS_ENV] = "0" if OPT_LEVEL_FLAG in _flags else "1"
+    if os.environ[_OPT_LEVELS_ENV] == "1":
+        os.environ["XLA_FLAGS"] = f"{_flags} --{OPT_LEVEL_FLAG}=0".strip()
+SET_OPT_LEVELS = os.environ[_OPT_LEVELS_ENV] == "1"
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("MNERF_SHARED_DATA", PROJECT_ROOT.parent / "shared" / "data"))
@@ -46,6 +55,10 @@ def pytest_configure(config: pytest.Config) -> None:
         config.stash[_CACHE_TO_REMOVE] = folder
     import jax
 
+    from mnerf_jax import xla_cpu
+
+    if SET_OPT_LEVELS:
+        xla_cpu.CPU_OPTIONS[OPT_LEVEL_FLAG] = "1"
     jax.config.update("jax_compilation_cache_dir", os.environ[JAX_CACHE_ENV])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

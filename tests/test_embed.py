@@ -418,6 +418,28 @@ def test_resume_continues_exactly(tiny: TinyRuns) -> None:
         (root / "r_once" / "keys.json").read_text())["messages"]
 
 
+def test_recorded_watermark_settings_older_than_todays_are_named(
+    tiny: TinyRuns, tmp_path: Path, mnerf
+) -> None:
+    # A fitted run records its day's [watermark] section and embed --from keeps it; after an upgrade that
+    # changed a default, the command names what differs (and still uses the recorded values).
+    assert E.watermark_defaults_drift(tiny.fit) == []
+    old = tmp_path / "old_fit"
+    shutil.copytree(tiny.fit, old)
+    recorded = json.loads((old / "config.json").read_text())
+    recorded["watermark"]["lr_decoder"] = 1e-4
+    (old / "config.json").write_text(json.dumps(recorded))
+    assert E.watermark_defaults_drift(old) == ["lr_decoder 0.0001 (today 0.001)"]
+    assert E.watermark_defaults_drift(tmp_path / "missing") == []  # embed itself says what is wrong
+    base = ["embed", "--num-ids", "2", "--bits", "8", "--decoder", tiny.decoder, "--steps", "0", "--quiet"]
+    code, _, err = mnerf(*base, "--from", old, "--out", tmp_path / "wm")
+    assert code == 0 and "lr_decoder 0.0001 (today 0.001)" in err and "--config PRESET" in err
+    assert json.loads((tmp_path / "wm" / "config.json").read_text())["watermark"]["lr_decoder"] == 1e-4
+    code, _, err = mnerf(*base, "--from", old, "--out", tmp_path / "wm2", "--config", "procedural")
+    assert code == 0 and "today" not in err
+    assert json.loads((tmp_path / "wm2" / "config.json").read_text())["watermark"]["lr_decoder"] == 1e-3
+
+
 # ------------------------------------------------------------------------------------------- bad input
 
 
@@ -635,13 +657,13 @@ def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
     )(params, dec["params"])  # fmt: skip
     assert image.shape == (h, w, 6)
 
-    def direct_one(k, p, d):
-        fn_k, loss_k = objective(ids[k : k + 1], messages[k : k + 1])
+    def direct_one(p, d, id_k, message_k):
+        fn_k, loss_k = objective(id_k, message_k)
         return D.direct_objective(fn_k, loss_k, ploss, p, d, rays, targets, index, owner,
                                   jax.random.PRNGKey(4), h, w)[0]  # fmt: skip
 
-    grads = [jax.jit(jax.grad(functools.partial(direct_one, k), argnums=(0, 1)))(params, dec["params"])
-             for k in range(2)]  # fmt: skip
+    direct_grad = jax.jit(jax.grad(direct_one, argnums=(0, 1)))  # one compilation for both IDs
+    grads = [direct_grad(params, dec["params"], ids[k : k + 1], messages[k : k + 1]) for k in range(2)]
     ref_params = jax.tree.map(lambda a, b: 0.5 * (a + b), grads[0][0], grads[1][0])
     ref_dec = jax.tree.map(lambda a, b: 0.5 * (a + b), grads[0][1], grads[1][1])
     _assert_trees_close(g_params, ref_params)

@@ -38,6 +38,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from mnerf_jax import embed, wm_eval
 
+    if args.config is None and not args.resume:
+        drift = embed.watermark_defaults_drift(args.source)
+        if drift:
+            print(f"mnerf embed: note: {args.source} recorded [watermark] settings that differ from today's "
+                  f"defaults of its preset: {'; '.join(drift)}. Embedding with the recorded ones; "
+                  "--config PRESET or --set watermark.KEY=VALUE to change them.", file=sys.stderr)
     result = embed.embed(
         args.source, args.out, args.num_ids, args.bits, preset=args.config, overrides=args.set,
         decoder_path=args.decoder, data_path=args.data, resume=args.resume, stop_at=args.steps,
