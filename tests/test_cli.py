@@ -106,29 +106,8 @@ def test_missing_data_and_missing_checkpoint_are_clear_errors(tmp_path, mnerf):
     assert code == 2 and "no such directory" in err
 
 
-# One phase-1 step of a small embedding: the demo's plumbing end to end, not the embedding's quality.
-TINY_WATERMARK = [
-    "watermark.patch_size=16", "watermark.phase1_steps=1", "watermark.phase2_steps=0",
-    "watermark.wm_ranks=4,4,4",
-]  # fmt: skip
-
-
-def test_demo_runs_its_steps_into_a_folder(tmp_path, mnerf, monkeypatch):
-    # Without a 16-bit decoder (none shipped, no --decoder) the watermark step starts from a fresh one.
-    from mnerf_jax import decoder_io
-
-    monkeypatch.setattr(decoder_io, "shipped_decoder_path", lambda bits: tmp_path / f"absent_l{bits}.npz")
-    out = tmp_path / "demo"
-    code, stdout, err = mnerf("demo", "--out", out, *_sets(TINY + TINY_WATERMARK), "--frames", "2", "--quiet")
-    assert code == 0, err
-    assert (out / "run" / "eval-test.json").is_file() and (out / "orbit" / "path.gif").is_file()
-    assert len(list((out / "test").glob("*.png"))) == 4
-    assert "test PSNR" in stdout
-    notes = [line for line in err.splitlines() if "fresh decoder" in line]
-    assert len(notes) == 1 and "--decoder FILE" in notes[0], err
-    assert (out / "wm" / "eval-test.json").is_file() and (out / "report" / "report.md").is_file()
-    assert "4 IDs × 16 bits" in stdout
-    # A folder that is neither empty nor a demo's is refused.
+def test_demo_into_a_folder_that_is_not_a_demos_is_refused(tmp_path, mnerf):
+    # (tests/test_wm_cli.py runs the whole demo on the tiny fitted run.)
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "x").write_text("x")
     code, _, err = mnerf("demo", "--out", tmp_path / "other", *_sets(TINY), "--quiet")

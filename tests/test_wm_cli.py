@@ -181,30 +181,36 @@ def test_demo_finds_its_decoder(tiny: TinyRuns, tmp_path: Path, monkeypatch) -> 
     assert demo.find_decoder(None) == (shipped, "")
 
 
-@pytest.mark.parametrize("fresh", [False, True])
-def test_demo_watermark_step_at_tiny_size(
-    tiny: TinyRuns, tmp_path: Path, make_decoder, capsys, fresh: bool
+def test_demo_resumes_its_fitted_run_and_writes_the_report(
+    tiny: TinyRuns, tmp_path: Path, mnerf, monkeypatch
 ) -> None:
-    from mnerf_jax import decoder_io
-    from mnerf_jax.commands import demo
+    """The whole ``mnerf demo`` on a demo folder whose run is already fitted (the tiny fit): the fit step
+    resumes it with nothing left to train, then evaluation, renders, one phase-1 step of 4 IDs × 16 bits from
+    a fresh decoder (none shipped, no --decoder: a note says so), the watermark evaluation and the report."""
+    from conftest import TINY_FIT
 
+    from mnerf_jax import decoder_io
+
+    monkeypatch.setattr(decoder_io, "shipped_decoder_path", lambda bits: tmp_path / f"absent_l{bits}.npz")
     out = tmp_path / "demo"
     shutil.copytree(tiny.fit, out / "run")
-    path, _ = demo.find_decoder(
-        Path(decoder_io.FRESH) if fresh else make_decoder(tmp_path / "dec16.npz", 16)
-    )
-    # One phase-1 step: the step's plumbing, not the embedding's quality (tests/test_embed.py has that).
-    overrides = (*tiny.embed_overrides, "watermark.phase1_steps=1", "watermark.phase2_steps=0")
-    ctx = demo.DemoContext(out=out, config=None, quiet=True, decoder=path, embed_overrides=overrides)
-    demo.step_watermark(ctx)
+    (out / "demo.json").write_text("{}")  # an earlier demo's folder
+    # The step's plumbing, not the embedding's quality (tests/test_embed.py has that). The run recorded the
+    # preset's [watermark] section: these --set items must still reach the embedding (1 step, not 1,000).
+    sets = [*TINY_FIT, *tiny.embed_overrides, "watermark.phase1_steps=1", "watermark.phase2_steps=0"]
+    code, stdout, err = mnerf("demo", "--out", out, *[a for s in sets for a in ("--set", s)], "--frames", "2",
+                              "--quiet")  # fmt: skip
+    assert code == 0, err
+    notes = [line for line in err.splitlines() if "fresh decoder" in line]
+    assert len(notes) == 1 and "--decoder FILE" in notes[0], err
+    fitted = json.loads((tiny.fit / "metrics.json").read_text())["steps"]
+    assert f"{fitted} steps" in stdout and "test PSNR" in stdout
+    assert (out / "run" / "eval-test.json").is_file() and (out / "orbit" / "path.gif").is_file()
+    assert len(list((out / "test").glob("*.png"))) == 6
     for name in ("report.md", "renders.png", "bit_accuracy.png"):
         assert (out / "report" / name).is_file(), name
     saved = json.loads((out / "wm" / "eval-test.json").read_text())
     assert saved["num_ids"] == 4 and saved["bits"] == 16 and saved["views"] == 6
     assert json.loads((out / "wm" / "embed.json").read_text())["steps_done"] == 1
-    assert [name for name, _ in ctx.rows] == ["watermark", "watermark report"]
-    capsys.readouterr()
-    demo.print_summary(ctx)
-    printed = capsys.readouterr().out
-    assert "4 IDs × 16 bits" in printed and "IDs × bits" in printed and "4 × 16" in printed
-    assert printed.count("\n  3  ") == 1  # the per-ID table lists ID 3
+    assert "4 IDs × 16 bits" in stdout and "IDs × bits" in stdout and "4 × 16" in stdout
+    assert stdout.count("\n  3  ") == 1  # the per-ID table lists ID 3

@@ -53,7 +53,8 @@ class DemoContext:
     quiet: bool = False
     decoder: Path | None = None
     decoder_note: str = ""  # printed when the watermark step starts (why a fresh decoder is used)
-    # --set items for the embedding only (the demo's own --set reach it already, through the run's config).
+    # --set items for the embedding, over the [watermark] section the fitted run recorded: the demo's own
+    # ``--set watermark.*``, so that they also reach a resumed demo, whose run recorded an earlier section.
     embed_overrides: tuple[str, ...] = ()
     rows: list[tuple[str, str]] = dataclasses.field(default_factory=list)
     state: dict[str, Any] = dataclasses.field(default_factory=dict)
@@ -195,8 +196,9 @@ def run(args: argparse.Namespace) -> int:
 
     config = load_config(DEMO_CONFIG, args.set)
     decoder, note = find_decoder(args.decoder)
+    watermark_sets = tuple(item for item in args.set if item.strip().startswith("watermark."))
     ctx = DemoContext(out=args.out, config=config, frames=args.frames, quiet=args.quiet, decoder=decoder,
-                      decoder_note=note)  # fmt: skip
+                      decoder_note=note, embed_overrides=watermark_sets)  # fmt: skip
     prepare_out(ctx)
     t0 = time.perf_counter()
     for i, (title, step) in enumerate(STEPS, 1):
