@@ -226,13 +226,14 @@ def _small_watermarked_scene(cfg, num_ids: int, h: int, w: int) -> tuple:
     return model, params, geometry, rays, targets
 
 
-@pytest.mark.parametrize("h, w, size", [(13, 12, 11), (12, 12, 12)])
+@pytest.mark.parametrize("h, w, size", [(13, 12, 11)])
 def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_losses(
     h: int, w: int, size: int
 ) -> None:
     # The watermarked TensoRF through render_rays (dense budgets, no jitter), the decoder's BCE on LL2 plus
-    # Watson, and the phase-2 patch loss (L1 + TV + SSIM) on overlapping 11-px patches of a 13×12 image, or
-    # on one 12-px patch (the single-patch path: one render on the graph).
+    # Watson, and the phase-2 patch loss (L1 + TV + SSIM) on overlapping 11-px patches of a 13×12 image.
+    # (The single-patch path, one render on the graph, is test_deferred_gradient_equals_direct_gradient
+    # [8-8-8]; a second real-renderer case for it cost 15 s of compiling and tested no other code.)
     from mnerf_jax import decoder, losses, render, watermark
     from mnerf_jax.config import WatermarkConfig
 
