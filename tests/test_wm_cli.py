@@ -1,5 +1,5 @@
 """The commands on watermarked runs (the `tiny` fixture of conftest.py): ``load_run`` from a fresh process,
-``render --id``, ``evaluate``, ``extract --run`` and the demo's watermark step."""
+``render --id``, ``evaluate``, ``extract --run`` and the whole demo on the tiny fitted run."""
 
 from __future__ import annotations
 
