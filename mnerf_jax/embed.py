@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -188,14 +188,18 @@ def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequen
     return config
 
 
-def watermark_defaults_drift(run_dir: str | Path) -> list[str]:
+def watermark_defaults_drift(run_dir: str | Path, overrides: Iterable[str] = ()) -> list[str]:
     """Fields where the ``[watermark]`` section a fitted run recorded differs from its preset's today.
 
     A fit records the whole config, watermark section included, and ``embed --from`` takes that section as
     its base (the run is the record). After an upgrade that changed a default, the recorded value is the
-    old one: ``["lr_decoder 0.0001 (today 0.001)", ...]``, for a note. ``[]`` when they agree, when the
+    old one: ``["lr_decoder 0.0001 (today 0.001)", ...]``, for a note. Fields that ``overrides`` (the
+    command's ``--set`` items) set are left out: neither value is used. ``[]`` when they agree, when the
     run's preset is not a shipped one, or when ``run_dir`` is not a fitted run (``embed`` says so).
     """
+    prefix = "watermark."
+    overridden = {item.split("=", 1)[0].strip().removeprefix(prefix) for item in overrides
+                  if item.strip().startswith(prefix)}  # fmt: skip
     run_dir = Path(run_dir)
     marker = runs.read_marker(run_dir) if run_dir.is_dir() else None
     if marker is None or marker.get("kind") != runs.TENSORF_KIND:
@@ -208,7 +212,7 @@ def watermark_defaults_drift(run_dir: str | Path) -> list[str]:
     return [
         f"{f.name} {getattr(recorded.watermark, f.name)!r} (today {getattr(today, f.name)!r})"
         for f in dataclasses.fields(today)
-        if getattr(recorded.watermark, f.name) != getattr(today, f.name)
+        if f.name not in overridden and getattr(recorded.watermark, f.name) != getattr(today, f.name)
     ]
 
 

@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     from mnerf_jax import embed, wm_eval
 
     if args.config is None and not args.resume:
-        drift = embed.watermark_defaults_drift(args.source)
+        drift = embed.watermark_defaults_drift(args.source, args.set)
         if drift:
             print(f"mnerf embed: note: {args.source} recorded [watermark] settings that differ from today's "
                   f"defaults of its preset: {'; '.join(drift)}. Embedding with the recorded ones; "
