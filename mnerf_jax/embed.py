@@ -197,9 +197,7 @@ def watermark_defaults_drift(run_dir: str | Path, overrides: Iterable[str] = ())
     command's ``--set`` items) set are left out: neither value is used. ``[]`` when they agree, when the
     run's preset is not a shipped one, or when ``run_dir`` is not a fitted run (``embed`` says so).
     """
-    prefix = "watermark."
-    overridden = {item.split("=", 1)[0].strip().removeprefix(prefix) for item in overrides
-                  if item.strip().startswith(prefix)}  # fmt: skip
+    overridden = config_lib.parse_overrides(overrides).get("watermark", {})
     run_dir = Path(run_dir)
     marker = runs.read_marker(run_dir) if run_dir.is_dir() else None
     if marker is None or marker.get("kind") != runs.TENSORF_KIND:
