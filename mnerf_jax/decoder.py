@@ -281,3 +281,32 @@ def fit_whitening(variables: Mapping[str, Any], ll2_batches: list[jax.Array]) ->
     raw = np.concatenate([np.asarray(apply(variables, x)) for x in ll2_batches])
     w, b = whitening_from_outputs(raw)
     return set_whitening(variables, w, b)
+
+
+def recentre_whitening(
+    variables: Mapping[str, Any], ll2_batches: list[jax.Array]
+) -> tuple[Variables, dict[str, float]]:
+    """Re-centre and re-scale the whitening so the logits over the given LL2 batches have zero mean and unit
+    variance; the rotation is kept (each logit is only shifted and scaled by a positive factor).
+
+    For a decoder trained further after its whitening was fitted: an encoder learned against that rotation,
+    so refitting it would scramble the encoder's bits, while a per-logit offset (the drift on clean images)
+    and positive scale leave them readable. Returns the variables and the drift found: ``max_abs_mean``
+    (the largest logit mean removed), ``max_std_ratio`` (the largest logit standard deviation divided out)
+    and ``max_abs_corr`` (the largest correlation between two logits, which neither step can change).
+    """
+    logits = np.concatenate([np.asarray(apply_ll2(variables, x)) for x in ll2_batches]).astype(np.float64)
+    mean, std = logits.mean(axis=0), np.maximum(logits.std(axis=0), 1e-12)
+    corr = np.corrcoef(logits, rowvar=False)
+    params = dict(variables["params"])
+    whiten = params["whiten"]
+    kernel = np.asarray(whiten["kernel"], np.float64) / std  # Dense: y = x @ kernel + bias, output on axis 1
+    bias = (np.asarray(whiten["bias"], np.float64) - mean) / std
+    dtype = whiten["bias"].dtype
+    params["whiten"] = {"kernel": jnp.asarray(kernel, dtype), "bias": jnp.asarray(bias, dtype)}
+    report = {
+        "max_abs_mean": float(np.abs(mean).max()),
+        "max_std_ratio": float(std.max()),
+        "max_abs_corr": float(np.abs(corr - np.eye(corr.shape[0])).max()),
+    }
+    return _with_weights(variables, params, variables["batch_stats"]), report

@@ -30,7 +30,14 @@ class DecoderTrainConfig:
     # Image sides of the encoder steps, in turn (each batch about as many pixels as ``batch`` × ``size``²);
     # empty: ``size`` only. An encoder trained at one side writes worse at the others.
     finetune_sizes: tuple[int, ...] = ()
-    # A whitened decoder file to train an encoder for (stages 1-3 skipped; the decoder is not changed).
+    # Stage 4 can train the decoder too, HiDDeN-style, once the encoder writes for it: its peak learning rate
+    # (0: the decoder stays frozen) and the share of the stage's steps before it starts. The decoder keeps its
+    # BatchNorm statistics and whitening rotation (what the encoder learned against); the whitening's offset
+    # and scale are re-fitted on clean crops at the end.
+    finetune_decoder_lr: float = 0.0
+    finetune_decoder_start: float = 0.25
+    # A whitened decoder file to train an encoder for (stages 1-3 skipped; the decoder is not changed unless
+    # finetune_decoder_lr > 0).
     decoder_from: str = ""
     size: int = 64  # side in pixels of the images the decoder sees in training (LL2 side = size / 4)
     crop_margin: int = 0  # images are encoded at size + margin; the decoder sees a random size × size window
@@ -102,6 +109,14 @@ def informed_batch(cfg: DecoderTrainConfig, step: int) -> tuple[int, int]:
 def finetune_sides(cfg: DecoderTrainConfig) -> tuple[int, ...]:
     """The image sides of the encoder steps (``finetune_sizes``, or ``size`` alone)."""
     return tuple(cfg.finetune_sizes) or (cfg.size,)
+
+
+def finetune_decoder_start_step(cfg: DecoderTrainConfig) -> int:
+    """Stage-4 step (counted from the stage's start) from which the decoder learns too; the stage's length
+    when it never does."""
+    if cfg.finetune_decoder_lr <= 0:
+        return cfg.finetune_steps
+    return int(round(cfg.finetune_decoder_start * cfg.finetune_steps))
 
 
 def psnr_schedule(cfg: DecoderTrainConfig, step: int) -> float:

@@ -115,30 +115,47 @@ def make_joint_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation, a
     return xla_cpu.jit_cpu_tuned(step, donate_argnums=0)
 
 
-def make_finetune_step(cfg: DecoderTrainConfig, tx: optax.GradientTransformation) -> Callable:
-    """Jitted encoder-only step through the frozen (eval-mode, whitened) decoder.
+def make_finetune_step(
+    cfg: DecoderTrainConfig,
+    tx: optax.GradientTransformation,
+    tx_decoder: optax.GradientTransformation | None = None,
+) -> Callable:
+    """Jitted encoder step through the eval-mode, whitened decoder: frozen, or also stepped by ``tx_decoder``.
 
     Half of the steps see the augmented encoded images, unless the run never augments (``clean_fraction`` 1).
+    A learning decoder keeps its BatchNorm running statistics and its whitening layer (the rotation the
+    encoder writes for): only its convolutions, BatchNorm affine parameters and first linear layer move.
     """
     augment_fn = policy(cfg) if cfg.clean_fraction < 1.0 else (lambda key, images: images)
 
-    def loss_fn(enc_params, state, images, bits, key):
-        enc = {"params": enc_params, "batch_stats": state["encoder"]["batch_stats"]}
+    def loss_fn(params, state, images, bits, key):
+        enc = {"params": params["encoder"], "batch_stats": state["encoder"]["batch_stats"]}
         encoded, enc_stats = encode(enc, images, bits, cfg, train=True)
         k_apply, k_aug, k_crop = jax.random.split(key, 3)
         window = random_windows(k_crop, encoded, encoded.shape[1] - cfg.crop_margin)  # sides take turns
         # Half the steps see the clean encoded image: the no-attack accuracy matters as much as robustness.
         seen = jnp.where(jax.random.uniform(k_apply) < 0.5, augment_fn(k_aug, window), window)
-        logits = dec.apply_ll2(state["decoder"], dwt.ll2(seen, cfg.wavelet))
+        logits = dec.apply_ll2({**state["decoder"], "params": params["decoder"]}, dwt.ll2(seen, cfg.wavelet))
         loss = _message_loss(logits, bits, cfg.temperature)
         return loss, {"enc_stats": enc_stats, "acc": _bit_acc(logits, bits), "psnr": _psnr(encoded, images)}
 
     def step(state, images, bits, key, psnr):
         del psnr  # always the target
-        enc_params = state["encoder"]["params"]
-        (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(enc_params, state, images, bits, key)
-        new = _update_part(tx, state, "encoder", "opt_ft", grads, aux["enc_stats"])
-        return new, _metrics(loss, aux, grads)
+        dec_params = state["decoder"]["params"]
+        if tx_decoder is None:
+            grad_fn = lambda p: loss_fn({"encoder": p, "decoder": dec_params}, state, images, bits, key)
+            (loss, aux), grads = jax.value_and_grad(grad_fn, has_aux=True)(state["encoder"]["params"])
+            return _update_part(tx, state, "encoder", "opt_ft", grads, aux["enc_stats"]), _metrics(
+                loss, aux, grads
+            )
+        params = {"encoder": state["encoder"]["params"], "decoder": dec_params}
+        (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, state, images, bits, key)
+        new = _update_part(tx, state, "encoder", "opt_ft", grads["encoder"], aux["enc_stats"])
+        stats = state["decoder"]["batch_stats"]  # eval mode: the running statistics stay
+        new = _update_part(tx_decoder, new, "decoder", "opt_ft_dec", grads["decoder"], stats)
+        whitening = state["decoder"]["params"]["whiten"]  # fixed: weight decay would move it too
+        new["decoder"] = {**new["decoder"], "params": {**new["decoder"]["params"], "whiten": whitening}}
+        return _unless_finite(grads, new, state), _metrics(loss, aux, grads)
 
     return xla_cpu.jit_cpu_tuned(step, donate_argnums=0)
 

@@ -49,6 +49,7 @@ from mnerf_jax import decoder as dec
 from mnerf_jax import decoder_io, dwt
 from mnerf_jax.decoder_config import (
     DecoderTrainConfig,
+    finetune_decoder_start_step,
     finetune_sides,
     informed_batch,
     informed_psnr,
@@ -63,28 +64,40 @@ from mnerf_jax.errors import MnerfError
 from mnerf_jax.hidden_encoder import encode_batch, init_encoder
 
 # The parts of the training state that are arrays (and go through the jitted steps); the rest is bookkeeping.
-ARRAY_KEYS = ("encoder", "decoder", "opt", "opt_ft", "opt_inf")
+ARRAY_KEYS = ("encoder", "decoder", "opt", "opt_ft", "opt_inf", "opt_ft_dec")
 MAX_SKIPPED = 20  # consecutive steps with non-finite gradients before a run is declared diverged
 # Trajectory fields added after checkpoints were first written, with the value a checkpoint without them used.
-ADDED_FIELDS = {"decoder_init": "random", "pool_margin": 0, "finetune_sizes": [], "decoder_from": ""}
-def make_optimizers(
-    cfg: DecoderTrainConfig,
-) -> tuple[optax.GradientTransformation, optax.GradientTransformation, optax.GradientTransformation]:
-    """AdamW with linear warmup + cosine decay for the joint and for the informed steps, and a shorter
-    cosine for the encoder fine-tuning."""
+ADDED_FIELDS = {
+    "decoder_init": "random",
+    "pool_margin": 0,
+    "finetune_sizes": [],
+    "decoder_from": "",
+    "finetune_decoder_lr": 0.0,
+    "finetune_decoder_start": 0.25,
+}
+def make_optimizers(cfg: DecoderTrainConfig) -> tuple[optax.GradientTransformation, ...]:
+    """AdamW with linear warmup + cosine decay for the joint and for the informed steps, a shorter cosine
+    for the encoder fine-tuning, and one for the decoder over the fine-tuning steps it learns in (all clipped
+    at global norm 1): ``(joint, finetune, informed, finetune decoder)``."""
 
     def cosine(steps: int) -> optax.Schedule:
         warmup = min(cfg.warmup_steps, max(steps // 4, 1))
         return optax.warmup_cosine_decay_schedule(0.0, cfg.lr, warmup, max(steps, warmup + 1), cfg.lr * 0.01)
 
-    ft_warm = max(min(50, cfg.finetune_steps // 5), 1)
-    finetune = optax.warmup_cosine_decay_schedule(
-        0.0, cfg.lr_finetune, ft_warm, max(cfg.finetune_steps, ft_warm + 1), cfg.lr_finetune * 0.01
-    )
+    def short_cosine(peak: float, steps: int) -> optax.Schedule:
+        warm = max(min(50, steps // 5), 1)
+        return optax.warmup_cosine_decay_schedule(0.0, peak, warm, max(steps, warm + 1), peak * 0.01)
+
     make = lambda schedule: optax.chain(
         optax.clip_by_global_norm(1.0), optax.adamw(schedule, weight_decay=cfg.weight_decay)
     )
-    return make(cosine(cfg.steps)), make(finetune), make(cosine(cfg.informed_steps))
+    decoder_steps = cfg.finetune_steps - finetune_decoder_start_step(cfg)
+    return (
+        make(cosine(cfg.steps)),
+        make(short_cosine(cfg.lr_finetune, cfg.finetune_steps)),
+        make(cosine(cfg.informed_steps)),
+        make(short_cosine(cfg.finetune_decoder_lr, decoder_steps)),
+    )
 
 
 def decoder_from_file(cfg: DecoderTrainConfig) -> dict[str, Any]:
@@ -114,7 +127,7 @@ def init_state(cfg: DecoderTrainConfig) -> tuple[dict[str, Any], tuple]:
         if cfg.decoder_init == "filterbank":
             decoder = dec.filterbank_init(decoder)
         decoder = dec.with_pool_margin(decoder, cfg.pool_margin)
-    tx_joint, tx_ft, tx_inf = make_optimizers(cfg)
+    tx_joint, tx_ft, tx_inf, tx_ft_dec = make_optimizers(cfg)
     state = {
         "step": 0,
         "whitened": bool(cfg.decoder_from),
@@ -125,8 +138,9 @@ def init_state(cfg: DecoderTrainConfig) -> tuple[dict[str, Any], tuple]:
         "opt": jax.jit(tx_joint.init)({"encoder": encoder["params"], "decoder": decoder["params"]}),
         "opt_ft": jax.jit(tx_ft.init)(encoder["params"]),
         "opt_inf": jax.jit(tx_inf.init)(decoder["params"]),
+        "opt_ft_dec": jax.jit(tx_ft_dec.init)(decoder["params"]),
     }
-    return state, (tx_joint, tx_ft, tx_inf)
+    return state, (tx_joint, tx_ft, tx_inf, tx_ft_dec)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -251,7 +265,7 @@ def train_decoder(
     log = log or (lambda line: None)
     if ckpt.is_file() and not resume:
         raise MnerfError(f"{ckpt} exists; pass --resume to continue that run or choose another --out")
-    state, (tx_joint, tx_ft, tx_inf) = init_state(cfg)
+    state, (tx_joint, tx_ft, tx_inf, tx_ft_dec) = init_state(cfg)
     if resume and ckpt.is_file():
         state = load_checkpoint(ckpt, state, cfg)
         log(f"resumed from {ckpt} at step {state['step']}")
@@ -302,9 +316,13 @@ def train_decoder(
                     record({"step": step, "event": "whitened", **state["whitening_report"]})
                     log(f"step {step}: whitening fitted {state['whitening_report']}")
                     checkpoint()
-                if "finetune" not in steps_fns:
-                    steps_fns["finetune"] = make_finetune_step(cfg, tx_ft)
-                fn, psnr = steps_fns["finetune"], cfg.target_psnr
+                ft_step = step - cfg.informed_steps - cfg.steps
+                phase = "finetune, decoder" if ft_step >= finetune_decoder_start_step(cfg) else "finetune"
+                if phase not in steps_fns:
+                    steps_fns[phase] = make_finetune_step(
+                        cfg, tx_ft, tx_ft_dec if phase == "finetune, decoder" else None
+                    )
+                fn, psnr = steps_fns[phase], cfg.target_psnr
             key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed + 1), step)
             arrays, metrics = fn(
                 {k: state[k] for k in ARRAY_KEYS},
@@ -337,11 +355,38 @@ def train_decoder(
         if not state["whitened"]:  # finetune_steps == 0
             state["whitening_report"] = whiten_state(cfg, state, source, eval_images, eval_bits)
             checkpoint()
+        if decoder_learned(cfg) and "recentred_max_abs_mean" not in state["whitening_report"]:
+            state["whitening_report"].update(recentre_state(cfg, state, source))
+            record({"step": total, "event": "whitening re-centred", **state["whitening_report"]})
+            checkpoint()
     finally:
         bar.close()
         history.close()
     wall = elapsed0 + time.time() - started
     return finish(cfg, state, out, wall)
+
+
+def decoder_learned(cfg: DecoderTrainConfig) -> bool:
+    """Whether stage 4 trained the decoder (then its whitening offset is re-centred at the end)."""
+    return cfg.finetune_decoder_lr > 0 and finetune_decoder_start_step(cfg) < cfg.finetune_steps
+
+
+def whitening_batches(cfg: DecoderTrainConfig, source: ImageSource) -> list[jax.Array]:
+    """LL2 sub-bands of the clean training crops the whitening is fitted on (a fixed draw)."""
+    rng = np.random.default_rng([cfg.seed, 1_000_000_007])
+    batches = []
+    n = cfg.whiten_images
+    for i in range(0, n, 64):
+        images = source.sample(rng, min(64, n - i))[:, : cfg.size, : cfg.size]
+        batches.append(dwt.ll2(jnp.asarray(images), cfg.wavelet))
+    return batches
+
+
+def recentre_state(cfg: DecoderTrainConfig, state: dict[str, Any], source: ImageSource) -> dict[str, float]:
+    """Re-centre the whitening of a decoder that learned in stage 4 (``decoder.recentre_whitening``) on the
+    whitening's clean crops; returns how far the clean logits had drifted from white."""
+    state["decoder"], report = dec.recentre_whitening(state["decoder"], whitening_batches(cfg, source))
+    return {f"recentred_{k}": v for k, v in report.items()}
 
 
 def whiten_state(
@@ -357,12 +402,7 @@ def whiten_state(
     whitening (the second is typically near chance: the encoder has not been fine-tuned yet).
     """
     before = clean_accuracy(cfg, state["encoder"], state["decoder"], eval_images, eval_bits)
-    rng = np.random.default_rng([cfg.seed, 1_000_000_007])
-    batches = []
-    n = cfg.whiten_images
-    for i in range(0, n, 64):
-        images = source.sample(rng, min(64, n - i))[:, : cfg.size, : cfg.size]
-        batches.append(dwt.ll2(jnp.asarray(images), cfg.wavelet))
+    batches = whitening_batches(cfg, source)
     state["decoder"] = dec.fit_whitening(state["decoder"], batches)
     state["whitened"] = True
     after = clean_accuracy(cfg, state["encoder"], state["decoder"], eval_images, eval_bits)
@@ -380,16 +420,18 @@ def finish(cfg: DecoderTrainConfig, state: dict[str, Any], out: Path, wall: floa
     check_images = np.round(check_images * 255.0).astype(np.uint8)
     check_logits = dec.decode_logits(dec_vars, jnp.asarray(check_images, jnp.float32) / 255.0, cfg.wavelet)
     check_acc = float(jnp.mean((check_logits > 0) == (jnp.asarray(check_bits) > 0.5)))
-    training = {
+    this_run = {
         "recipe": "mnerf train-decoder",
         "config": cfg.to_dict(),
         "wall_time_s": round(wall, 1),
         "machine": _machine(),
         "steps": cfg.steps + cfg.finetune_steps,
     }
-    if cfg.decoder_from:  # the decoder is the file's: keep its record, add the encoder's
+    training = this_run
+    if cfg.decoder_from:  # the decoder is the file's (perhaps trained on): keep its record, add this run's
         original = decoder_io.load_decoder(cfg.decoder_from, expect_bits=cfg.bits).metadata
-        training = {**original.get("training", {}), "encoder_refit": training}
+        stage = "joint_refit" if decoder_learned(cfg) else "encoder_refit"
+        training = {**original.get("training", {}), stage: this_run}
     evaluation = {
         "heldout": heldout,
         "check_batch_bit_acc": check_acc,
@@ -406,7 +448,7 @@ def finish(cfg: DecoderTrainConfig, state: dict[str, Any], out: Path, wall: floa
         "bits": cfg.bits,
         "decoder": "whitened",
         "fingerprint": meta["fingerprint"],
-        **training,
+        **this_run,  # the decoder file's metadata holds the whole record
         **evaluation,
     }
     flat = decoder_io._flatten({"params": enc_vars["params"], "batch_stats": enc_vars["batch_stats"]})

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import decoder_io, decoder_steps, decoder_train, dwt, hidden_encoder, informed
+from mnerf_jax import decoder_config, decoder_io, decoder_steps, decoder_train, dwt, hidden_encoder, informed
 from mnerf_jax.errors import MnerfError
 
 
@@ -390,7 +390,7 @@ def test_informed_step_with_a_margin_reads_windows_and_updates_the_decoder() -> 
     still updates the decoder, with finite metrics, and keeps its pooling margin (1: LL2 windows of 4²)."""
     cfg = decoder_train.DecoderTrainConfig(bits=8, size=16, informed_margin=4, batch=2, informed_steps=4,
                                            informed_sizes=(16,), pool_margin=1)  # fmt: skip
-    state, (_, _, tx_inf) = decoder_train.init_state(cfg)
+    state, (_, _, tx_inf, _) = decoder_train.init_state(cfg)
     step = decoder_steps.make_informed_step(cfg, tx_inf, augmented=False)
     arrays = {k: state[k] for k in decoder_train.ARRAY_KEYS}
     before = jax.tree.map(np.asarray, arrays["decoder"]["params"])
@@ -403,6 +403,46 @@ def test_informed_step_with_a_margin_reads_windows_and_updates_the_decoder() -> 
     moved = jax.tree.map(lambda a, b: float(np.abs(np.asarray(a) - b).max()), after, before)
     assert max(jax.tree.leaves(moved)) > 0.0
     assert dec.pool_margin(arrays["decoder"]) == 1
+
+
+def test_finetune_step_with_a_learning_decoder_keeps_its_whitening_and_statistics() -> None:
+    """Stage 4 with ``finetune_decoder_lr``: the encoder and the decoder's weights move; the whitening layer
+    and BatchNorm running statistics (what the encoder writes for) stay as they were."""
+    cfg = decoder_train.DecoderTrainConfig(bits=8, size=16, batch=2, finetune_steps=4, clean_fraction=1.0,
+                                           finetune_decoder_lr=1e-3, finetune_decoder_start=0.5)  # fmt: skip
+    assert decoder_config.finetune_decoder_start_step(cfg) == 2 and decoder_train.decoder_learned(cfg)
+    frozen = dataclasses.replace(cfg, finetune_decoder_lr=0.0)
+    assert decoder_config.finetune_decoder_start_step(frozen) == 4
+    assert not decoder_train.decoder_learned(frozen)
+    state, (_, tx_ft, _, tx_ft_dec) = decoder_train.init_state(cfg)
+    step = decoder_steps.make_finetune_step(cfg, tx_ft, tx_ft_dec)
+    arrays = {k: state[k] for k in decoder_train.ARRAY_KEYS}
+    before = jax.tree.map(np.asarray, {"encoder": arrays["encoder"], "decoder": arrays["decoder"]})
+    images = jnp.asarray(decoder_train.heldout_images(2, 16))
+    bits = jnp.asarray(decoder_train.heldout_messages(2, 8))
+    for i in range(2):  # the learning rates warm up from 0 at the first step
+        arrays, metrics = step(arrays, images, bits, jax.random.PRNGKey(i), jnp.float32(35.5))
+        assert float(metrics["skipped"]) == 0.0 and np.isfinite(float(metrics["loss"]))
+    moved = lambda a, b: max(float(np.abs(np.asarray(x) - y).max()) for x, y in
+                             zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))  # fmt: skip
+    assert moved(arrays["encoder"]["params"], before["encoder"]["params"]) > 0.0
+    assert moved(arrays["decoder"]["params"]["block_3"], before["decoder"]["params"]["block_3"]) > 0.0
+    assert moved(arrays["decoder"]["params"]["whiten"], before["decoder"]["params"]["whiten"]) == 0.0
+    assert moved(arrays["decoder"]["batch_stats"], before["decoder"]["batch_stats"]) == 0.0
+
+
+def test_recentring_the_whitening_standardises_each_logit_and_keeps_the_rotation(small_decoder: dict) -> None:
+    ll2 = [jax.random.uniform(jax.random.PRNGKey(i), (32, 8, 8, 3)) * 4.0 for i in range(2)]
+    shifted = dec.set_whitening(small_decoder, np.eye(16) * 2.0, np.full(16, 0.7))
+    centred, report = dec.recentre_whitening(shifted, ll2)
+    logits = np.concatenate([np.asarray(dec.apply_ll2(centred, x)) for x in ll2])
+    np.testing.assert_allclose(logits.mean(axis=0), 0.0, atol=1e-4)
+    np.testing.assert_allclose(logits.std(axis=0), 1.0, rtol=1e-4)
+    before = np.concatenate([np.asarray(dec.apply_ll2(shifted, x)) for x in ll2])  # each logit only moves
+    np.testing.assert_allclose(logits, (before - before.mean(0)) / before.std(0), atol=5e-3)  # and scales
+    assert report["max_abs_mean"] == pytest.approx(np.abs(before.mean(0)).max(), rel=1e-3)
+    assert report["max_std_ratio"] == pytest.approx(before.std(0).max(), rel=1e-3)
+    assert 0.0 < report["max_abs_corr"] < 1.0
 
 
 def test_checkpoint_round_trip(tmp_path: Path) -> None:

@@ -96,11 +96,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"peak learning rate of the encoder steps ({d.lr_finetune})",
     )
     parser.add_argument(
+        "--finetune-decoder-lr",
+        type=float,
+        default=d.finetune_decoder_lr,
+        help="peak learning rate of the decoder during the encoder steps, HiDDeN-style joint training once "
+        f"the encoder writes for it (0: the decoder stays frozen) ({d.finetune_decoder_lr})",
+    )
+    parser.add_argument(
+        "--finetune-decoder-start",
+        type=float,
+        default=d.finetune_decoder_start,
+        help="share of the encoder steps before the decoder starts learning (with --finetune-decoder-lr) "
+        f"({d.finetune_decoder_start})",
+    )
+    parser.add_argument(
         "--decoder-from",
         type=Path,
         default=None,
-        help="train only an encoder for this whitened decoder file (with --informed-steps 0 --steps 0); "
-        "the decoder is copied unchanged, its held-out figures re-measured with the new encoder",
+        help="train an encoder for this whitened decoder file (with --informed-steps 0 --steps 0); the "
+        "decoder is copied unchanged unless --finetune-decoder-lr, its held-out figures re-measured",
     )
     parser.add_argument(
         "--size",
@@ -150,6 +164,8 @@ def run(args: argparse.Namespace) -> int:
         finetune_steps=args.finetune_steps,
         finetune_sizes=args.finetune_sizes or (),
         lr_finetune=args.lr_finetune,
+        finetune_decoder_lr=args.finetune_decoder_lr,
+        finetune_decoder_start=args.finetune_decoder_start,
         decoder_from=str(args.decoder_from.resolve()) if args.decoder_from else "",
         size=args.size,
         encoder_channels=args.encoder_channels,
