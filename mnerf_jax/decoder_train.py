@@ -19,9 +19,11 @@ Recipe (CPU-sized; every step is one jitted function over a small batch of crops
    augmentations, p = 0.75).
 3. **Whitening.** The decoder's raw outputs over clean training crops give ``W = diag(e^-1/2)·Vᵀ``,
    ``b = −W·mean``: unwatermarked images then decode to white (zero-mean, identity-covariance) logits.
-4. **Encoder training** (``finetune_steps``) through the frozen, whitened decoder (whitening rotates the
+4. **Encoder training** (``finetune_steps``) through the whitened decoder (whitening rotates the
    logits, so an encoder from stage 2 has to re-fit; after stage 1 alone the encoder learns here from
-   scratch).
+   scratch). The decoder is frozen, or with ``finetune_decoder_lr`` learns too after
+   ``finetune_decoder_start`` of the steps (HiDDeN's joint training from a decoder that already reads); its
+   whitening rotation stays and its offset and scale are re-fitted on clean crops at the end.
 5. **Evaluation** on held-out crops (photographs and procedural images never used in training): bit accuracy
    of the encoder's images and of informed embeddings, with no attack and under the Low policy, and PSNR.
 
@@ -75,6 +77,8 @@ ADDED_FIELDS = {
     "finetune_decoder_lr": 0.0,
     "finetune_decoder_start": 0.25,
 }
+
+
 def make_optimizers(cfg: DecoderTrainConfig) -> tuple[optax.GradientTransformation, ...]:
     """AdamW with linear warmup + cosine decay for the joint and for the informed steps, a shorter cosine
     for the encoder fine-tuning, and one for the decoder over the fine-tuning steps it learns in (all clipped
@@ -367,7 +371,7 @@ def train_decoder(
 
 
 def decoder_learned(cfg: DecoderTrainConfig) -> bool:
-    """Whether stage 4 trained the decoder (then its whitening offset is re-centred at the end)."""
+    """Whether stage 4 trained the decoder (then its whitening offset and scale are re-fitted at the end)."""
     return cfg.finetune_decoder_lr > 0 and finetune_decoder_start_step(cfg) < cfg.finetune_steps
 
 
@@ -383,8 +387,9 @@ def whitening_batches(cfg: DecoderTrainConfig, source: ImageSource) -> list[jax.
 
 
 def recentre_state(cfg: DecoderTrainConfig, state: dict[str, Any], source: ImageSource) -> dict[str, float]:
-    """Re-centre the whitening of a decoder that learned in stage 4 (``decoder.recentre_whitening``) on the
-    whitening's clean crops; returns how far the clean logits had drifted from white."""
+    """Re-centre and re-scale the whitening of a decoder that learned in stage 4
+    (``decoder.recentre_whitening``) on the whitening's clean crops; returns how far the clean logits had
+    drifted from white."""
     state["decoder"], report = dec.recentre_whitening(state["decoder"], whitening_batches(cfg, source))
     return {f"recentred_{k}": v for k, v in report.items()}
 
