@@ -13,7 +13,16 @@ import numpy as np
 import pytest
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import decoder_config, decoder_io, decoder_steps, decoder_train, dwt, hidden_encoder, informed
+from mnerf_jax import (
+    decoder_checkpoint,
+    decoder_config,
+    decoder_io,
+    decoder_steps,
+    decoder_train,
+    dwt,
+    hidden_encoder,
+    informed,
+)
 from mnerf_jax.errors import MnerfError
 
 
@@ -392,7 +401,7 @@ def test_informed_step_with_a_margin_reads_windows_and_updates_the_decoder() -> 
                                            informed_sizes=(16,), pool_margin=1)  # fmt: skip
     state, (_, _, tx_inf, _) = decoder_train.init_state(cfg)
     step = decoder_steps.make_informed_step(cfg, tx_inf, augmented=False)
-    arrays = {k: state[k] for k in decoder_train.ARRAY_KEYS}
+    arrays = {k: state[k] for k in decoder_checkpoint.ARRAY_KEYS}
     before = jax.tree.map(np.asarray, arrays["decoder"]["params"])
     images = jnp.asarray(decoder_train.heldout_images(2, 20))
     bits = jnp.asarray(decoder_train.heldout_messages(2, 8))
@@ -416,7 +425,7 @@ def test_finetune_step_with_a_learning_decoder_keeps_its_whitening_and_statistic
     assert not decoder_train.decoder_learned(frozen)
     state, (_, tx_ft, _, tx_ft_dec) = decoder_train.init_state(cfg)
     step = decoder_steps.make_finetune_step(cfg, tx_ft, tx_ft_dec)
-    arrays = {k: state[k] for k in decoder_train.ARRAY_KEYS}
+    arrays = {k: state[k] for k in decoder_checkpoint.ARRAY_KEYS}
     before = jax.tree.map(np.asarray, {"encoder": arrays["encoder"], "decoder": arrays["decoder"]})
     images = jnp.asarray(decoder_train.heldout_images(2, 16))
     bits = jnp.asarray(decoder_train.heldout_messages(2, 8))
@@ -449,16 +458,16 @@ def test_checkpoint_round_trip(tmp_path: Path) -> None:
     cfg = decoder_train.DecoderTrainConfig(bits=8)
     state, _ = decoder_train.init_state(cfg)
     state["step"], state["whitened"], state["elapsed_s"] = 17, True, 3.5
-    decoder_train.save_checkpoint(tmp_path / "c.msgpack", state, cfg)
-    template = jax.tree.map(jnp.zeros_like, {k: state[k] for k in decoder_train.ARRAY_KEYS})
+    decoder_checkpoint.save_checkpoint(tmp_path / "c.msgpack", state, cfg)
+    template = jax.tree.map(jnp.zeros_like, {k: state[k] for k in decoder_checkpoint.ARRAY_KEYS})
     template.update(step=0, whitened=False, elapsed_s=0.0, whitening_report=state["whitening_report"])
-    restored = decoder_train.load_checkpoint(tmp_path / "c.msgpack", template, cfg)
+    restored = decoder_checkpoint.load_checkpoint(tmp_path / "c.msgpack", template, cfg)
     assert (restored["step"], restored["whitened"], restored["elapsed_s"]) == (17, True, 3.5)
     for a, b in zip(jax.tree.leaves(restored["opt"]), jax.tree.leaves(state["opt"]), strict=True):
         np.testing.assert_array_equal(a, b)
     (tmp_path / "bad.msgpack").write_bytes(b"\x00\x01garbage")
     with pytest.raises(MnerfError, match="unreadable"):
-        decoder_train.load_checkpoint(tmp_path / "bad.msgpack", template, cfg)
+        decoder_checkpoint.load_checkpoint(tmp_path / "bad.msgpack", template, cfg)
 
 
 def test_non_finite_gradient_skips_the_step() -> None:
@@ -531,13 +540,13 @@ def test_checkpoint_from_before_decoder_init_existed_reads_as_random(tmp_path: P
     cfg = decoder_train.DecoderTrainConfig(bits=8, decoder_init="random")
     state, _ = decoder_train.init_state(cfg)
     path = tmp_path / "c.msgpack"
-    decoder_train.save_checkpoint(path, state, cfg)
+    decoder_checkpoint.save_checkpoint(path, state, cfg)
     payload = flax.serialization.msgpack_restore(path.read_bytes())
     config = json.loads(payload["config"])
     del config["decoder_init"], config["pool_margin"]  # as a checkpoint written before the fields existed
     payload["config"] = json.dumps(config)
     path.write_bytes(flax.serialization.msgpack_serialize(payload))
-    assert decoder_train.load_checkpoint(path, state, cfg)["step"] == 0
+    assert decoder_checkpoint.load_checkpoint(path, state, cfg)["step"] == 0
     other = decoder_train.DecoderTrainConfig(bits=8, decoder_init="filterbank")
     with pytest.raises(MnerfError, match="decoder_init: random -> filterbank"):
-        decoder_train.load_checkpoint(path, state, other)
+        decoder_checkpoint.load_checkpoint(path, state, other)
