@@ -145,9 +145,8 @@ def make_finetune_step(
         if tx_decoder is None:
             grad_fn = lambda p: loss_fn({"encoder": p, "decoder": dec_params}, state, images, bits, key)
             (loss, aux), grads = jax.value_and_grad(grad_fn, has_aux=True)(state["encoder"]["params"])
-            return _update_part(tx, state, "encoder", "opt_ft", grads, aux["enc_stats"]), _metrics(
-                loss, aux, grads
-            )
+            new = _update_part(tx, state, "encoder", "opt_ft", grads, aux["enc_stats"])
+            return new, _metrics(loss, aux, grads)
         params = {"encoder": state["encoder"]["params"], "decoder": dec_params}
         (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, state, images, bits, key)
         new = _update_part(tx, state, "encoder", "opt_ft", grads["encoder"], aux["enc_stats"])
