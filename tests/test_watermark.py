@@ -162,6 +162,16 @@ def test_the_automatic_schedule_grows_with_the_ids() -> None:
         W.check_config(WatermarkConfig(phase2_steps=-2))
 
 
+def test_the_cpu_preset_moves_steps_from_phase_1_to_phase_2() -> None:
+    from mnerf_jax import config
+
+    # `mnerf embed --config embed_cpu` reads the preset's [watermark] section only: today's defaults with
+    # a 100 + 2,000 step schedule (the lego protocol in about an hour on 2 cores).
+    cfg = config.load_preset("embed_cpu").watermark
+    assert W.phase_steps(cfg, num_ids=16) == (100, 2000)
+    assert dataclasses.replace(cfg, phase1_steps=-1, phase2_steps=-1) == WatermarkConfig()
+
+
 def test_watermark_grid_follows_upsampling_and_shrinking() -> None:
     params = _params(WatermarkConfig(wm_ranks=(2, 2, 2)))
     up = W.resample_watermark(params, (12, 10, 9))
