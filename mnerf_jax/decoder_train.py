@@ -268,11 +268,10 @@ def train_decoder(
                     log(f"step {step}: whitening fitted {state['whitening_report']}")
                     checkpoint()
                 ft_step = step - cfg.informed_steps - cfg.steps
-                phase = "finetune, decoder" if ft_step >= finetune_decoder_start_step(cfg) else "finetune"
+                learns = ft_step >= finetune_decoder_start_step(cfg)
+                phase = "finetune, decoder" if learns else "finetune"
                 if phase not in steps_fns:
-                    steps_fns[phase] = make_finetune_step(
-                        cfg, tx_ft, tx_ft_dec if phase == "finetune, decoder" else None
-                    )
+                    steps_fns[phase] = make_finetune_step(cfg, tx_ft, tx_ft_dec if learns else None)
                 fn, psnr = steps_fns[phase], cfg.target_psnr
             key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed + 1), step)
             arrays, metrics = fn(
@@ -319,7 +318,7 @@ def train_decoder(
 
 def decoder_learned(cfg: DecoderTrainConfig) -> bool:
     """Whether stage 4 trained the decoder (then its whitening offset and scale are re-fitted at the end)."""
-    return cfg.finetune_decoder_lr > 0 and finetune_decoder_start_step(cfg) < cfg.finetune_steps
+    return finetune_decoder_start_step(cfg) < cfg.finetune_steps  # the whole stage when the rate is 0
 
 
 def whitening_batches(cfg: DecoderTrainConfig, source: ImageSource) -> list[jax.Array]:
