@@ -86,9 +86,9 @@ def markdown(eval_result: Mapping[str, Any], grid_png: str | None, bars_png: str
     if ident:
         out += [
             "",
-            f"Identification: the best-matching key by bit agreement; verified when its Bonferroni-corrected "
-            f"binomial p-value is below {ident.get('threshold')} (smallest attainable with these sizes: "
-            f"{_fmt('{:.3g}', ident.get('min_attainable_p'))}).",
+            f"Identification: the best-matching key by soft correlation with the logits; verified when its "
+            f"Bonferroni-corrected binomial p-value (on its agreeing bits) is below {ident.get('threshold')} "
+            f"(smallest attainable with these sizes: {_fmt('{:.3g}', ident.get('min_attainable_p'))}).",
         ]
     per_id = eval_result.get("per_id") or []
     if per_id:

@@ -1,15 +1,21 @@
 """Evaluation of a watermarked run: bit accuracy per ID, image quality, identification of the ID.
 
-Identification. A decoded message ``b`` (``L`` bits, logit > 0) is compared with every key ``m_n``; the best
-match is the key with the most agreeing bits ``k``. Under the null hypothesis (no watermark: decoded bits are
-fair coin flips independent of the keys) the agreement with one fixed key is ``X ~ Bin(L, ½)``, so
+Identification. A decoded message (``L`` logits ``ℓ``, bits ``b = ℓ > 0``) is compared with every key
+``m_n``. The best match is the key with the largest soft correlation ``Σ_i ℓ_i (2 m_n,i − 1)``
+(:func:`identify_logits`, what evaluation and ``mnerf extract`` use): soft-decision decoding, the
+maximum-likelihood key when the logits are equally scaled noisy readings of ``±1`` (the decoder's whitening
+layer scales them alike), so a confident bit outweighs a doubtful one; counting agreeing bits alone
+(:func:`identify`, hard decisions) throws that away and leaves ties. With ``k`` the agreeing bits of the
+chosen key, under the null hypothesis (no watermark: decoded bits are fair coin flips independent of the
+keys) the agreement with one fixed key is ``X ~ Bin(L, ½)``, so
 
     p = P[X ≥ k] = Σ_{j≥k} C(L, j) / 2^L
 
-and, as the best of ``N`` keys was picked, the Bonferroni-corrected ``p_N = min(1, N·p)`` bounds the chance
-that *any* key agrees this well by luck. The decision rule: report the best-matching ID when
+and, as one of ``N`` keys was picked, the Bonferroni-corrected ``p_N = min(1, N·p)`` bounds the chance
+that *any* key agrees this well by luck (the chosen key agrees at most as well as the best-agreeing one, so
+picking it by soft correlation keeps the bound). The decision rule: report the best-matching ID when
 ``p_N < threshold`` (default :data:`DEFAULT_THRESHOLD` = 1e-3, i.e. at most one false claim per thousand
-unwatermarked images), otherwise "no watermark" (ID −1). A tie between two keys at the best agreement is
+unwatermarked images), otherwise "no watermark" (ID −1). A tie between two keys at the best score is
 undecided (−1) too.
 
 The smallest attainable ``p_N`` is ``N / 2^L`` (all bits agree): with short messages and many IDs the
@@ -62,7 +68,7 @@ def binomial_tail(k: int, n: int) -> float:
 class Identification:
     """Identification of a batch of ``B`` decoded messages against ``N`` keys.
 
-    best_id [B]       the key with the most agreeing bits (−1 on a tie)
+    best_id [B]       the best-matching key (−1 on a tie)
     agreement [B]     agreeing bits with that key
     bit_accuracy [B]  agreement / L
     p_value [B]       P[Bin(L, ½) ≥ agreement]
@@ -88,7 +94,7 @@ class Identification:
 def identify(
     decoded: np.ndarray, messages: np.ndarray, threshold: float = DEFAULT_THRESHOLD
 ) -> Identification:
-    """Best-matching key, its binomial p-value and the decision for each decoded message.
+    """Best-matching key by agreeing bits (hard decisions), its binomial p-value and the decision.
 
     Args:
       decoded: ``[B, L]`` decoded bits (or ``[L]``).
@@ -97,13 +103,44 @@ def identify(
     """
     decoded = np.atleast_2d(np.asarray(decoded, np.uint8))
     messages = np.asarray(messages, np.uint8)
-    n_ids, bits = messages.shape
-    if decoded.shape[-1] != bits:
-        raise ValueError(f"decoded messages have {decoded.shape[-1]} bits, the keys {bits}")
+    _check_bits(decoded, messages)
     agree = (decoded[:, None, :] == messages[None, :, :]).sum(-1)  # [B, N]
-    best = agree.max(axis=1)
-    best_id = agree.argmax(axis=1)
-    tie = (agree == best[:, None]).sum(axis=1) > 1
+    return _identification(agree, agree, messages, threshold)
+
+
+def identify_logits(
+    logits: np.ndarray, messages: np.ndarray, threshold: float = DEFAULT_THRESHOLD
+) -> Identification:
+    """Best-matching key by soft correlation ``Σ ℓ_i (2 m_i − 1)`` (module docstring), its binomial p-value
+    (on its agreeing bits ``ℓ > 0``) and the decision.
+
+    Args:
+      logits: ``[B, L]`` decoder logits (or ``[L]``).
+      messages: ``[N, L]`` keys.
+      threshold: decision threshold on the Bonferroni-corrected p-value.
+    """
+    logits = np.atleast_2d(np.asarray(logits, np.float64))
+    messages = np.asarray(messages, np.uint8)
+    _check_bits(logits, messages)
+    signs = 2.0 * messages.astype(np.float64) - 1.0
+    agree = (logits_to_bits(logits)[:, None, :] == messages[None, :, :]).sum(-1)  # [B, N]
+    return _identification(logits @ signs.T, agree, messages, threshold)
+
+
+def _check_bits(decoded: np.ndarray, messages: np.ndarray) -> None:
+    if decoded.shape[-1] != messages.shape[-1]:
+        raise ValueError(f"decoded messages have {decoded.shape[-1]} bits, the keys {messages.shape[-1]}")
+
+
+def _identification(
+    scores: np.ndarray, agree: np.ndarray, messages: np.ndarray, threshold: float
+) -> Identification:
+    """The key of highest ``scores [B, N]`` (−1 on a tie), judged by its agreeing bits ``agree [B, N]``."""
+    n_ids, bits = messages.shape
+    top = scores.max(axis=1)
+    best_id = scores.argmax(axis=1)
+    tie = (scores == top[:, None]).sum(axis=1) > 1
+    best = np.take_along_axis(agree, best_id[:, None], axis=1)[:, 0]
     best_id = np.where(tie, NO_WATERMARK, best_id)
     p = np.array([binomial_tail(int(k), bits) for k in best], np.float64)
     p_corr = np.minimum(1.0, n_ids * p)
@@ -212,8 +249,9 @@ def evaluate_watermarked_run(
     Top-level keys: ``bit_accuracy_mean``, ``bit_accuracy_min`` (worst ID), ``bit_accuracy_png_mean``,
     ``psnr``, ``ssim``, ``lpips`` (vs ground truth), ``psnr_clean_model`` / ``ssim_clean_model`` /
     ``lpips_clean_model`` (vs the clean model's renders), ``clean_psnr`` (clean model vs ground truth),
-    ``identification_accuracy`` (best-matching key is the rendered ID), ``verified_identification_accuracy``
-    (and its p-value passes ``threshold``), ``clean_bit_accuracy``, ``clean_false_detection_rate``,
+    ``identification_accuracy`` (best-matching key by soft correlation is the rendered ID;
+    ``identification_accuracy_hard``: by agreeing bits), ``verified_identification_accuracy`` (and its p-value
+    passes ``threshold``), ``clean_bit_accuracy``, ``clean_false_detection_rate``,
     ``num_ids``, ``bits``, ``split``, ``views``, ``per_id`` and ``identification`` (confusion matrices).
     With ``keep_renders`` the returned dict (not the file) also holds ``_renders`` ``{ID: [V, H, W, 3]}``,
     ``_clean`` and ``_gt``.
@@ -265,7 +303,7 @@ def evaluate_watermarked_run(
             reloaded = np.stack([_to_uint8(img).astype(np.float32) / 255.0 for img in renders[n]])
         logits_png = _decode(decoder, reloaded)
         bits, bits_png = logits_to_bits(logits), logits_to_bits(logits_png)
-        ident_n = identify(bits, keys.messages, thr)
+        ident_n = identify_logits(logits, keys.messages, thr)
         per_id.append({
             "id": n,
             "message": "".join(str(int(b)) for b in keys.messages[n]),
@@ -276,12 +314,13 @@ def evaluate_watermarked_run(
             "psnr": _quality(renders[n], gt, lpips_net)["psnr"],
         })  # fmt: skip
         true_ids += [n] * n_views
-        decoded.append(bits)
-        decoded_png.append(bits_png)
+        decoded.append(logits)
+        decoded_png.append(logits_png)
         all_renders.append(renders[n])
     decoded_all = np.concatenate(decoded)
-    ident = identify(decoded_all, keys.messages, thr)
-    ident_png = identify(np.concatenate(decoded_png), keys.messages, thr)
+    ident = identify_logits(decoded_all, keys.messages, thr)
+    ident_png = identify_logits(np.concatenate(decoded_png), keys.messages, thr)
+    ident_hard = identify(logits_to_bits(decoded_all), keys.messages, thr)
     stacked = np.concatenate(all_renders)
     quality = _quality(stacked, np.tile(gt, (n_ids, 1, 1, 1)), lpips_net)
     accs = [row["bit_accuracy"] for row in per_id]
@@ -304,6 +343,8 @@ def evaluate_watermarked_run(
         "lpips_net": lpips_net,
         **identification_summary(true_ids, ident),
         "identification_accuracy_png": float((ident_png.best_id == np.asarray(true_ids)).mean()),
+        # The best match by agreeing bits alone (hard decisions, ties count as wrong): for comparison.
+        "identification_accuracy_hard": float((ident_hard.best_id == np.asarray(true_ids)).mean()),
         "per_id": per_id,
         "source_run": None if source is None else str(source.run_dir),
     }
@@ -314,8 +355,9 @@ def evaluate_watermarked_run(
     if clean is not None:
         vs_clean = _quality(stacked, np.tile(clean, (n_ids, 1, 1, 1)), lpips_net)
         clean_q = _quality(clean, gt, lpips_net)
-        clean_bits = logits_to_bits(_decode(decoder, clean))
-        clean_ident = identify(clean_bits, keys.messages, thr)
+        clean_logits = _decode(decoder, clean)
+        clean_bits = logits_to_bits(clean_logits)
+        clean_ident = identify_logits(clean_logits, keys.messages, thr)
         result.update({
             "psnr_clean_model": vs_clean["psnr"],
             "ssim_clean_model": vs_clean["ssim"],
@@ -368,7 +410,7 @@ def identify_images(
         threshold = runs.read_run_config(run_dir).watermark.id_threshold
     thr = float(threshold)
     logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, batch_size)
-    ident = identify(logits_to_bits(logits), keys.messages, thr)
+    ident = identify_logits(logits, keys.messages, thr)
     return [
         {
             "image": str(p),

@@ -68,10 +68,10 @@ def bound_figures(
         y = embed(x, b, None if masks is None else jnp.asarray(masks[start : start + batch]))
         mse = np.asarray(jnp.mean((y - x) ** 2, axis=(1, 2, 3)))
         worst_psnr = min(worst_psnr, float(np.min(-10.0 * np.log10(np.maximum(mse, 1e-20)))))
-        decoded["none"].append(np.asarray(read(y)) > 0)
+        decoded["none"].append(np.asarray(read(y)))
         for d in range(low_draws):
             key = jax.random.fold_in(jax.random.PRNGKey(d), start)
-            decoded["low"].append((d, start, np.asarray(attacked(key, y)) > 0))
+            decoded["low"].append((d, start, np.asarray(attacked(key, y))))
     out: dict = {"residual_psnr_db": round(psnr, 2), "residual_psnr_min_db": round(worst_psnr, 2)}
     none = np.concatenate(decoded["none"])
     out["none"] = _summary(none, messages, ids)
@@ -82,10 +82,10 @@ def bound_figures(
     return out
 
 
-def _summary(decoded: np.ndarray, messages: np.ndarray, ids: np.ndarray) -> dict[str, float]:
-    acc = (decoded == messages[ids].astype(bool)).mean(axis=1)
+def _summary(logits: np.ndarray, messages: np.ndarray, ids: np.ndarray) -> dict[str, float]:
+    acc = ((logits > 0) == messages[ids].astype(bool)).mean(axis=1)
     per_id = [float(acc[ids == i].mean()) for i in range(messages.shape[0]) if np.any(ids == i)]
-    ident = wm_eval.identify(decoded.astype(np.uint8), messages)
+    ident = wm_eval.identify_logits(logits, messages)
     return {
         "bit_accuracy_mean": float(acc.mean()),
         "bit_accuracy_min_id": float(min(per_id)),

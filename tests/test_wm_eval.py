@@ -81,6 +81,57 @@ def test_false_detections_on_random_bits_stay_below_the_threshold() -> None:
     assert abs(V.bit_accuracy(decoded, keys[0]).mean() - 0.5) < 0.01
 
 
+@settings(max_examples=25, deadline=None)
+@given(num_ids=st.integers(1, 6), bits=st.sampled_from([8, 16, 32]), seed=st.integers(0, 10_000))
+def test_soft_identification_of_equal_logits_is_the_hard_one(num_ids: int, bits: int, seed: int) -> None:
+    # Logits of equal size carry nothing beyond their signs: the soft match is the agreeing-bits match.
+    rng = np.random.default_rng(seed)
+    keys = rng.integers(0, 2, (num_ids, bits)).astype(np.uint8)
+    decoded = rng.integers(0, 2, (5, bits)).astype(np.uint8)
+    hard = V.identify(decoded, keys, threshold=0.05)
+    soft = V.identify_logits(3.0 * (2.0 * decoded - 1.0), keys, threshold=0.05)
+    for field in ("best_id", "agreement", "p_value", "decision"):
+        np.testing.assert_array_equal(getattr(soft, field), getattr(hard, field))
+
+
+def test_soft_identification_weighs_confident_bits() -> None:
+    keys = np.array([[0, 0, 0, 0, 0, 0], [1, 1, 0, 0, 0, 0]], np.uint8)
+    # Bits 1 0 0 0 0 0 agree with each key on 5 bits, a tie for hard decisions; the bit on key 1's side is
+    # barely positive, the one on key 0's side confident.
+    logits = np.array([[0.05, -2.0, -1.0, -1.0, -1.0, -1.0]])
+    assert V.identify(V.logits_to_bits(logits), keys, threshold=1.0).best_id[0] == -1
+    soft = V.identify_logits(logits, keys, threshold=1.0)
+    assert soft.best_id[0] == 0 and soft.agreement[0] == 5  # judged by the chosen key's agreeing bits
+    assert soft.p_value[0] == pytest.approx(V.binomial_tail(5, 6))
+    # Soft scores tie only when exactly equal (here: no information at all).
+    assert V.identify_logits(np.zeros((1, 6)), keys, threshold=1.0).best_id[0] == -1
+    with pytest.raises(ValueError, match="5 bits, the keys 6"):
+        V.identify_logits(np.zeros((1, 5)), keys)
+
+
+def test_soft_identification_is_right_more_often_on_noisy_logits() -> None:
+    # Logits as noisy readings of ±1 whose reliability varies from bit to bit, as a decoder's do.
+    rng = np.random.default_rng(3)
+    keys = rng.integers(0, 2, (16, 16)).astype(np.uint8)
+    ids = rng.integers(0, 16, 4_000)
+    scale = rng.uniform(0.2, 2.0, (4_000, 16))
+    logits = scale * (2.0 * keys[ids] - 1.0) + rng.normal(0.0, 1.0, (4_000, 16))
+    hard = V.identify(V.logits_to_bits(logits), keys).best_id == ids
+    soft = V.identify_logits(logits, keys).best_id == ids
+    assert soft.mean() > hard.mean() + 0.03
+
+
+def test_soft_identification_keeps_false_detections_below_the_threshold() -> None:
+    # The chosen key agrees at most as well as the best-agreeing one, so the corrected p-value still bounds
+    # false claims on unwatermarked images (logits of any scale, signs fair coins).
+    rng = np.random.default_rng(2)
+    keys = rng.integers(0, 2, (8, 16)).astype(np.uint8)
+    logits = rng.normal(0.0, 1.0, (40_000, 16)) * rng.uniform(0.1, 3.0, (40_000, 1))
+    ident = V.identify_logits(logits, keys, threshold=0.05)
+    rate = V.false_detection_summary(ident)["false_detection_rate"]
+    assert 0.0 < rate <= 0.05 + 3 * math.sqrt(0.05 * 0.95 / 40_000)
+
+
 def test_confusion_matrix_and_summary() -> None:
     keys = np.array([[0] * 16, [1] * 16, [0, 1] * 8], np.uint8)
     decoded = np.concatenate([keys, keys[[1]], np.array([[0, 0, 1, 1] * 4], np.uint8)])
