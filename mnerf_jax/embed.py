@@ -42,37 +42,25 @@ import dataclasses
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
-from tqdm.auto import tqdm
 
-from mnerf_jax import augment, budgets, decoder_io, dwt, grids, losses, raymarch, watermark, wm_run
+from mnerf_jax import augment, budgets, decoder_io, dwt, losses, raymarch, watermark, wm_run
 from mnerf_jax import config as config_lib
 from mnerf_jax import keys as keys_lib
 from mnerf_jax import run as runs
-from mnerf_jax.checkpoint import CheckpointStore, check_compatible, config_fingerprint
+from mnerf_jax.checkpoint import CheckpointStore, check_compatible
 from mnerf_jax.config import Config
-from mnerf_jax.deferred import PatchLayout, patch_layout, tiling_patch_size
-from mnerf_jax.embed_inputs import check_rgb_images, clean_references, step_batch, step_choice
-from mnerf_jax.wm_run import DECODER_FILE, META_FILE, STATE_VERSION, WM_KIND, EmbedError
-from mnerf_jax.wm_step import (
-    EmbedState,
-    StepSpec,
-    embed_step,
-    make_optimizer,
-    phase_of,
-    step_config,
-    total_steps,
-    uses_fidelity,
-)
+from mnerf_jax.deferred import patch_layout, tiling_patch_size
+from mnerf_jax.embed_inputs import check_rgb_images, clean_references
+from mnerf_jax.embed_loop import EmbedLoop, EmbedResult, seed_budgets
+from mnerf_jax.wm_run import WM_KIND, EmbedError
+from mnerf_jax.wm_step import EmbedState, make_optimizer, total_steps, uses_fidelity
 
-# The embedding run: sources, checkpoints, the loop (the jitted step and its optimiser: wm_step).
+# The embedding run: sources, config, setting up the loop (embed_loop; the jitted step and its optimiser:
+# wm_step).
 # ==========================================================================================================
-
-_BUDGET_SITE = "embed_patch"
 
 
 # --------------------------------------------------------------------------------------------- sources
@@ -101,53 +89,6 @@ def load_decoder_for(bits: int, path: str | Path | None) -> decoder_io.LoadedDec
     if loaded.bits != bits:
         raise EmbedError(f"--decoder {path} reads {loaded.bits}-bit messages, not --bits {bits}")
     return loaded
-
-
-# ------------------------------------------------------------------------------------- checkpoints
-
-
-def _checkpoint_tree(state: EmbedState, geometry: raymarch.Geometry) -> dict[str, Any]:
-    return {
-        "params": state.params,
-        "decoder": state.decoder,
-        "opt_state": state.opt_state,
-        "step": state.step,
-        "key": jax.random.key_data(state.key),
-        "geometry": raymarch.geometry_arrays(geometry),
-    }
-
-
-def _checkpoint_meta(config: Config, state: EmbedState, geometry: raymarch.Geometry, keys: keys_lib.KeySet,
-                     budgets: tuple[int, int]) -> dict[str, Any]:  # fmt: skip
-    step = int(state.step)
-    return {
-        "kind": WM_KIND,
-        "version": STATE_VERSION,
-        "step": step,
-        "phase": phase_of(max(step - 1, 0), config.watermark),
-        "fingerprint": config_fingerprint(wm_run.fingerprint_config(config), wm_run.SECTIONS),
-        "config": config.to_dict(),
-        "resolution": list(grids.vm_resolution(state.params["density"])),
-        "geometry": raymarch.geometry_meta(geometry),
-        "num_ids": keys.num_ids,
-        "bits": keys.bits,
-        "budgets": [int(b) for b in budgets],
-    }
-
-
-# ------------------------------------------------------------------------------------------- the loop
-
-
-@dataclasses.dataclass
-class EmbedResult:
-    """What :func:`embed` returns."""
-
-    run_dir: Path
-    keys: keys_lib.KeySet
-    steps: int
-    seconds: float
-    last_metrics: dict[str, float]
-    redone_steps: int
 
 
 def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequence[str], num_ids: int,
@@ -252,6 +193,7 @@ def embed(
       stop_at: stop after this many steps in all (a checkpoint is written there).
       on_step: called after every step with ``(step, metrics)``.
     """
+    started = time.perf_counter()  # the time budget's clock (watermark.time_budget_min)
     out = Path(out_dir)
     source = load_source(source_run)
     config = resolve_config(source, preset, overrides, num_ids, bits)
@@ -285,6 +227,7 @@ def embed(
     # 0.7 s fitted, so waiting five steps for a better estimate cost more than the overflow it may save.
     policy = budgets.BudgetPolicy(colour_fraction=1.0, fresh_calls=1)
     n_rays, n_samples = layout.size * layout.size, source.geometry.n_samples
+    schedule = watermark.phase_steps(cfg)
     try:
         if resuming:
             meta = store.read_meta()
@@ -301,7 +244,9 @@ def embed(
                 key=jax.random.wrap_key_data(jnp.asarray(tree["key"], jnp.uint32)),
             )
             geometry = raymarch.geometry_from_checkpoint(tree["geometry"], meta["geometry"])
-            _seed_budgets(policy, n_rays, n_samples, meta["budgets"])
+            seed_budgets(policy, n_rays, n_samples, meta["budgets"])
+            if int(tree["step"]) > 0 and "schedule" in meta:  # a budget sized it: keep that length
+                schedule = (int(meta["schedule"][0]), int(meta["schedule"][1]))
         else:
             keys = keys_lib.generate_keys(num_ids, bits, cfg.min_hamming, cfg.key_seed, loaded.fingerprint)
             root = jax.random.key(cfg.seed)
@@ -326,109 +271,10 @@ def embed(
         # uncommitted first state is another cache key for jit, so the first step compiled twice.
         state = jax.device_put(state, jax.devices()[0])
         references = clean_references(source, split, progress) if uses_fidelity(cfg) else None
-        loop = _Loop(config, split, keys, layout, geometry, policy, store, out, progress, on_step, vgg,
-                     references)  # fmt: skip
-        return loop.run(state, stop_at)
+        loop = EmbedLoop(config, split, keys, layout, geometry, policy, store, out, progress, on_step, vgg,
+                         schedule, references)  # fmt: skip
+        return loop.run(state, stop_at, started)
     finally:
         store.close()
 
 
-def _seed_budgets(policy: budgets.BudgetPolicy, n_rays: int, n_samples: int, budgets: Sequence[int]) -> None:
-    """Start ``policy`` at the budgets a checkpoint recorded (no overflow-and-redo after a resume)."""
-    policy.budgets(_BUDGET_SITE, n_rays, n_samples)
-    site = policy._sites[(_BUDGET_SITE, n_rays * n_samples)]  # noqa: SLF001
-    site.density, site.colour = int(budgets[0]), int(budgets[1])
-
-
-@dataclasses.dataclass
-class _Loop:
-    """Host side of the embedding: choose ID and view, dispatch steps, grow budgets, checkpoint, report."""
-
-    config: Config
-    split: Any
-    keys: keys_lib.KeySet
-    layout: PatchLayout
-    geometry: raymarch.Geometry
-    policy: budgets.BudgetPolicy
-    store: CheckpointStore
-    out: Path
-    progress: bool
-    on_step: Callable[[int, dict[str, float]], None] | None
-    vgg: Any
-    references: np.ndarray | None = None  # clean renders of the training views (watermark.fidelity_psnr)
-
-    def budgets(self) -> tuple[int, int]:
-        return self.policy.budgets(_BUDGET_SITE, self.layout.size**2, self.geometry.n_samples)
-
-    def save(self, state: EmbedState) -> None:
-        """Checkpoint, then the decoder as it is now, then keys.json tied to that decoder, then progress."""
-        step = int(state.step)
-        meta = _checkpoint_meta(self.config, state, self.geometry, self.keys, self.budgets())
-        self.store.save(step, _checkpoint_tree(state, self.geometry), meta)
-        self.store.wait()
-        dec_meta = decoder_io.save_decoder(self.out / DECODER_FILE, state.decoder, {"embed_step": step},
-                                           wavelet=self.config.watermark.wavelet)  # fmt: skip
-        self.keys = keys_lib.with_fingerprint(self.keys, dec_meta["fingerprint"])
-        keys_lib.save_keys(self.out, self.keys)
-        runs.write_json_atomic(
-            self.out / META_FILE,
-            {"steps_done": step, "phase": meta["phase"], "decoder_fingerprint": dec_meta["fingerprint"]},
-        )
-
-    def run(self, state: EmbedState, stop_at: int | None) -> EmbedResult:
-        cfg = self.config.watermark
-        total = total_steps(cfg)
-        stop = total if stop_at is None else min(int(stop_at), total)
-        n_rays, n_samples = self.layout.size**2, self.geometry.n_samples
-        index_arr, owner_arr = jnp.asarray(self.layout.index), jnp.asarray(self.layout.owner)
-        messages = self.keys.messages.astype(np.float32)
-        start = step = int(state.step)
-        every = max(int(cfg.checkpoint_every), 1)
-        step_cfg = step_config(cfg)
-        bar = tqdm(total=stop, initial=start, disable=not self.progress, desc="embed", unit="step",
-                   dynamic_ncols=True)  # fmt: skip
-        recent: list[tuple[float, float]] = []
-        last: dict[str, float] = {}
-        redone = 0
-        t0 = time.perf_counter()
-        try:
-            while step < stop:
-                phase = phase_of(step, cfg)
-                ids, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images),
-                                        watermark.ids_per_step_of(cfg, self.keys.num_ids))  # fmt: skip
-                batch = step_batch(self.split, view, messages, ids, self.references)
-                db, cb = self.budgets()
-                spec = StepSpec(model=self.config.model, wm=step_cfg, adam_b1=self.config.train.adam_b1,
-                                adam_b2=self.config.train.adam_b2, phase=phase, height=self.layout.height,
-                                width=self.layout.width, density_budget=db, colour_budget=cb)  # fmt: skip
-                new_state, metrics = embed_step(state, self.geometry, batch, index_arr, owner_arr, self.vgg,
-                                                spec=spec)  # fmt: skip
-                host = {k: float(v) for k, v in jax.device_get(metrics).items()}
-                counts = {k: int(host[k]) for k in ("density_count", "colour_count")}
-                if self.policy.update(_BUDGET_SITE, counts, n_rays, n_samples):
-                    redone += 1  # samples were dropped: redo the step with the grown budgets
-                    continue
-                if not all(np.isfinite(v) for v in host.values()):
-                    raise EmbedError(f"step {step}: the loss is not finite ({host['loss']}); lower the "
-                                     "learning rates (watermark.lr_*)")  # fmt: skip
-                state, step = new_state, step + 1
-                host.update(phase=float(phase), id=float(ids[0]), view=float(view))
-                last = host
-                recent = [*recent, (host["bit_acc"], host["psnr"], host.get("psnr_clean", np.nan))][-20:]
-                bar.update(1)
-                shown = {"phase": phase, "bit_acc": f"{np.mean([r[0] for r in recent]):.3f}",
-                         "psnr": f"{np.mean([r[1] for r in recent]):.2f}"}  # fmt: skip
-                if "psnr_clean" in host:  # against the clean model's render (the quality budget)
-                    shown["psnr_clean"] = f"{np.mean([r[2] for r in recent]):.2f}"
-                bar.set_postfix(shown)
-                if self.on_step is not None:
-                    self.on_step(step - 1, host)
-                if step % every == 0 or step == stop or step == cfg.phase1_steps:
-                    self.save(state)
-        finally:
-            bar.close()
-        if not (self.out / DECODER_FILE).is_file():
-            self.save(state)
-        return EmbedResult(run_dir=self.out, keys=self.keys, steps=int(state.step),
-                           seconds=time.perf_counter() - t0, last_metrics=last,
-                           redone_steps=redone)  # fmt: skip

@@ -89,6 +89,8 @@ def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
     if cfg.phase1_steps < -1 or cfg.phase2_steps < -1:
         raise WatermarkError("watermark.phase1_steps and watermark.phase2_steps must be ≥ 0 (-1: by the "
                              f"number of IDs), got {cfg.phase1_steps} and {cfg.phase2_steps}")  # fmt: skip
+    if not cfg.time_budget_min >= 0:
+        raise WatermarkError(f"watermark.time_budget_min must be ≥ 0 (0: off), got {cfg.time_budget_min}")
     if cfg.fidelity_psnr < 0 or cfg.lambda_fidelity < 0:
         raise WatermarkError("watermark.fidelity_psnr (dB, 0: off) and watermark.lambda_fidelity must be "
                              f"≥ 0, got {cfg.fidelity_psnr} and {cfg.lambda_fidelity}")  # fmt: skip

@@ -66,19 +66,20 @@ def total_steps(cfg: WatermarkConfig) -> int:
 
 
 # Fields of WatermarkConfig that only the host loop reads (which step is in which phase, keys, seeds,
-# checkpoints, identification): the compiled step sees the learning-rate decay's length, not the split.
+# checkpoints, identification, the time budget). The learning-rate decay's length is an argument of the
+# compiled step, so the schedule can be sized after its steps are timed (embed_budget.py).
 _HOST_ONLY_FIELDS = (
     "min_hamming", "key_seed", "checkpoint_every", "seed", "id_threshold", "keep_checkpoints",
+    "time_budget_min", "phase1_steps", "phase2_steps",
 )  # fmt: skip
 
 
 def step_config(cfg: WatermarkConfig) -> WatermarkConfig:
-    """``cfg`` as :class:`StepSpec` holds it: host-only fields at their defaults and every step in one
-    phase count, so runs that differ only there share one compilation of :func:`embed_step` (the phase itself
-    is ``StepSpec.phase``)."""
+    """``cfg`` as :class:`StepSpec` holds it: host-only fields at their defaults, so runs that differ only
+    there (the schedule's length included) share one compilation of :func:`embed_step` (the phase itself is
+    ``StepSpec.phase``)."""
     defaults = WatermarkConfig()
-    host = {name: getattr(defaults, name) for name in _HOST_ONLY_FIELDS}
-    return dataclasses.replace(cfg, **host, phase1_steps=0, phase2_steps=total_steps(cfg))
+    return dataclasses.replace(cfg, **{name: getattr(defaults, name) for name in _HOST_ONLY_FIELDS})
 
 
 def phase_of(step: int, cfg: WatermarkConfig) -> int:
@@ -118,10 +119,11 @@ def param_labels(tree: PyTree, cfg: WatermarkConfig) -> PyTree:
 
 
 def make_optimizer(
-    cfg: WatermarkConfig, adam_b1: float = 0.9, adam_b2: float = 0.99
+    cfg: WatermarkConfig, adam_b1: float = 0.9, adam_b2: float = 0.99, total: int | jax.Array | None = None
 ) -> optax.GradientTransformation:
-    """Adam per group with exponential decay ``lr · decay_ratio^(t / total_steps)``."""
-    total = max(total_steps(cfg), 1)
+    """Adam per group with exponential decay ``lr · decay_ratio^(t / total)``; ``total`` (default: the
+    schedule's steps, ``total_steps(cfg)``) may be traced."""
+    total = jnp.maximum(total_steps(cfg) if total is None else total, 1)
 
     def group(lr: float) -> optax.GradientTransformation:
         decay = float(cfg.lr_decay_ratio)
@@ -269,10 +271,13 @@ def embed_step(
     layout_index: jax.Array,
     layout_owner: jax.Array,
     vgg_params: Any,
+    total: jax.Array,
     *,
     spec: StepSpec,
 ) -> tuple[EmbedState, dict[str, jax.Array]]:
     """One optimisation step on one view rendered with K IDs (deferred back-propagation).
+
+    ``total``: int32 scalar, the steps of the whole schedule (the learning rates decay over it).
 
     batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [K, L]`` (0/1 float), ``id [K]`` int32 (distinct),
     and with the quality budget on (``watermark.fidelity_psnr``) ``reference [H·W, 3]``: the clean model's
@@ -299,7 +304,7 @@ def embed_step(
         g_dec = jax.tree.map(jnp.zeros_like, g_dec)  # the decoder is frozen in phase 1
     grads = {"field": g_field, "decoder": g_dec}
     values = {"field": state.params, "decoder": state.decoder["params"]}
-    tx = make_optimizer(cfg, spec.adam_b1, spec.adam_b2)
+    tx = make_optimizer(cfg, spec.adam_b1, spec.adam_b2, total)
     updates, opt_state = tx.update(grads, state.opt_state, values)
     new_values = optax.apply_updates(values, updates)
     # Bit accuracy of the renders as they are (no augmentation), with the decoder before this update.

@@ -75,12 +75,14 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
                               adam_b2=config.train.adam_b2, phase=2, height=height, width=size,
                               density_budget=db, colour_budget=cb)  # fmt: skip
 
+    total = jnp.asarray(wm_step.total_steps(cfg), jnp.int32)
     base = _rss_mb()
     start = time.perf_counter()
     if mode == "deferred":
         done = 0
         while done < steps:
-            new_state, metrics = wm_step.embed_step(state, geometry, batch, index, owner, None, spec=spec())
+            new_state, metrics = wm_step.embed_step(state, geometry, batch, index, owner, None, total,
+                                                    spec=spec())  # fmt: skip
             counts = {k: int(metrics[k]) for k in ("density_count", "colour_count")}
             if not policy.update(site, counts, n_rays, n_samples):
                 state, done = new_state, done + 1

@@ -421,6 +421,48 @@ def test_resume_continues_exactly(tiny: TinyRuns) -> None:
         (root / "r_once" / "keys.json").read_text())["messages"]
 
 
+def test_a_time_budget_sizes_phase_two_once_and_resume_keeps_it(tiny: TinyRuns) -> None:
+    # A 30-minute budget holds far more than phase2_steps=3: the cap binds. The probe steps are discarded,
+    # so the run equals the same schedule without a budget; a resume keeps the recorded schedule, even under
+    # a budget that would now hold no step at all.
+    root = tiny.root
+    schedule = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=3"]
+    args = dict(decoder_path=tiny.decoder, progress=False)
+    budgeted = E.embed(tiny.fit, root / "b_split", 2, 8, stop_at=3,
+                       overrides=[*schedule, "watermark.time_budget_min=30"], **args)  # fmt: skip
+    assert budgeted.schedule == (2, 3) and budgeted.steps == 3
+    plan = budgeted.budget_plan
+    assert plan is not None and plan["phase2_steps"] == 3 and plan["phase2_step_s"] > 0
+    assert plan["phase1_step_s"] > 0 and plan["checkpoint_s"] > 0 and 0 < plan["elapsed_s"] < 30 * 60
+    record = json.loads((root / "b_split" / "embed.json").read_text())
+    assert record["schedule"] == [2, 3] and record["budget_plan"]["phase2_steps"] == 3
+    resumed = E.embed(tiny.fit, root / "b_split", 2, 8, resume=True,
+                      overrides=[*schedule, "watermark.time_budget_min=0.001"], **args)  # fmt: skip
+    assert resumed.steps == 5 and resumed.schedule == (2, 3) and resumed.budget_plan is None
+    plain = E.embed(tiny.fit, root / "b_plain", 2, 8, overrides=schedule, **args)
+    assert plain.budget_plan is None
+    a = wm_run.load_watermarked_run(root / "b_split")
+    b = wm_run.load_watermarked_run(root / "b_plain")
+    assert a.step == b.step == 5
+    for x, y in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
+
+
+def test_a_budget_without_room_for_phase_two_stops_before_the_first_step(tiny: TinyRuns) -> None:
+    root = tiny.root
+    schedule = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=3"]
+    args = dict(decoder_path=tiny.decoder, progress=False)
+    with pytest.raises(MnerfError, match="time_budget_min: a budget of 0.0 min holds no phase-2 step"):
+        E.embed(tiny.fit, root / "b_small", 2, 8, overrides=[*schedule, "watermark.time_budget_min=0.0001"],
+                **args)  # fmt: skip
+    # Nothing is lost: the run was saved at step 0 and resumes under a budget that holds it.
+    resumed = E.embed(tiny.fit, root / "b_small", 2, 8, resume=True,
+                      overrides=[*schedule, "watermark.time_budget_min=30"], **args)  # fmt: skip
+    assert resumed.steps == 5 and resumed.schedule == (2, 3)
+    with pytest.raises(MnerfError, match="time_budget_min must be ≥ 0"):
+        E.embed(tiny.fit, root / "b_bad", 2, 8, overrides=[*schedule, "watermark.time_budget_min=-1"], **args)
+
+
 def test_recorded_watermark_settings_older_than_todays_are_named(
     tiny: TinyRuns, tmp_path: Path, mnerf
 ) -> None:
@@ -571,6 +613,13 @@ def test_learning_rates_decay_exponentially() -> None:
     ratio = cfg.lr_decay_ratio ** (1.0 / total)
     assert steps[1] / steps[0] == pytest.approx(ratio, rel=1e-4)
     assert steps[2] / steps[1] == pytest.approx(ratio, rel=1e-4)
+    # The decay's length may be traced (the compiled step takes it as an argument): the same schedule.
+    traced = jax.jit(lambda n, st: S.make_optimizer(cfg, total=n).update(grads, st, tree))
+    updates, _ = traced(jnp.asarray(total, jnp.int32), state)
+    reference, _ = S.make_optimizer(cfg).update(grads, state, tree)
+    np.testing.assert_allclose(updates["field"]["basis"], reference["field"]["basis"], rtol=1e-6)
+    longer, _ = traced(jnp.asarray(2 * total, jnp.int32), state)
+    assert float(longer["field"]["basis"][0, 0]) < float(reference["field"]["basis"][0, 0]) < 0  # decays less
 
 
 def test_phases_and_step_choices_are_deterministic() -> None:
@@ -591,15 +640,15 @@ def test_phases_and_step_choices_are_deterministic() -> None:
 
 
 def test_step_config_keeps_what_the_compiled_step_reads() -> None:
-    # Runs that differ only in host-side fields (phase split, seeds, checkpoints) share one compiled step;
-    # the decay length (the total step count) and every loss weight still tell steps apart.
+    # Runs that differ only in host-side fields (the schedule, seeds, checkpoints, the time budget) share one
+    # compiled step (the decay's length is its argument); every loss weight still tells steps apart.
     from mnerf_jax.config import WatermarkConfig
 
     base = WatermarkConfig(phase1_steps=40, phase2_steps=40)
-    same = WatermarkConfig(phase1_steps=2, phase2_steps=78, seed=5, key_seed=3, checkpoint_every=7)
+    same = WatermarkConfig(phase1_steps=2, phase2_steps=78, seed=5, key_seed=3, checkpoint_every=7,
+                           time_budget_min=60.0)  # fmt: skip
     assert S.step_config(base) == S.step_config(same)
-    assert S.total_steps(S.step_config(base)) == 80
-    assert S.step_config(base) != S.step_config(WatermarkConfig(phase1_steps=40, phase2_steps=41))
+    assert S.step_config(base) == S.step_config(WatermarkConfig(phase1_steps=40, phase2_steps=41))
     heavier_rgb = WatermarkConfig(phase1_steps=40, phase2_steps=40, lambda_rgb=1.0)
     assert S.step_config(base) != S.step_config(heavier_rgb)
     fewer_attacks = WatermarkConfig(phase1_steps=40, phase2_steps=40, augment_names=("jpeg", "hue"))

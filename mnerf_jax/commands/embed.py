@@ -28,6 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "phase 2")  # fmt: skip
     parser.add_argument("--data", type=Path, default=None, help="scene directory (default: the fitted run's)")
     parser.add_argument("--resume", action="store_true", help="continue the embedding in --out")
+    parser.add_argument("--time-budget", type=float, default=None, metavar="MIN",
+                        help="finish within MIN minutes of wall time: phase 2 gets the steps that fit, at "
+                             "most watermark.phase2_steps (sets watermark.time_budget_min)")  # fmt: skip
     parser.add_argument("--steps", type=int, default=None, metavar="K",
                         help="stop after K steps in all (a checkpoint is written; --resume continues)")
     parser.add_argument("--eval-views", type=int, default=-1, metavar="V",
@@ -44,8 +47,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"mnerf embed: note: {args.source} recorded [watermark] settings that differ from today's "
                   f"defaults of its preset: {'; '.join(drift)}. Embedding with the recorded ones; "
                   "--config PRESET or --set watermark.KEY=VALUE to change them.", file=sys.stderr)
+    overrides = list(args.set)
+    if args.time_budget is not None:
+        overrides.append(f"watermark.time_budget_min={args.time_budget}")
     result = embed.embed(
-        args.source, args.out, args.num_ids, args.bits, preset=args.config, overrides=args.set,
+        args.source, args.out, args.num_ids, args.bits, preset=args.config, overrides=overrides,
         decoder_path=args.decoder, data_path=args.data, resume=args.resume, stop_at=args.steps,
         progress=not args.quiet,
     )  # fmt: skip
@@ -56,10 +62,13 @@ def run(args: argparse.Namespace) -> int:
         "bits": result.keys.bits,
         "min_hamming": result.keys.min_hamming,
         "steps": result.steps,
+        "schedule": list(result.schedule),
         "seconds": round(result.seconds, 1),
         "last_bit_accuracy": last.get("bit_acc"),
         "last_psnr": last.get("psnr"),
     }
+    if result.budget_plan is not None:
+        summary["budget_plan"] = result.budget_plan
     print(f"mnerf embed: {json.dumps(summary)}")
     if args.eval_views >= 0:
         evaluation = wm_eval.evaluate_watermarked_run(

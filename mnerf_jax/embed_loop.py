@@ -1,0 +1,220 @@
+"""The host side of ``mnerf embed``: the loop that chooses IDs and views, dispatches the jitted step
+(``wm_step.embed_step``), grows the sample buffers, sizes phase 2 to a time budget (``embed_budget``),
+checkpoints and reports. ``embed.embed`` sets it up.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from mnerf_jax import budgets, decoder_io, embed_budget, grids, raymarch, watermark, wm_run
+from mnerf_jax import keys as keys_lib
+from mnerf_jax import run as runs
+from mnerf_jax.checkpoint import CheckpointStore, config_fingerprint
+from mnerf_jax.config import Config
+from mnerf_jax.deferred import PatchLayout
+from mnerf_jax.embed_inputs import step_batch, step_choice
+from mnerf_jax.wm_run import DECODER_FILE, META_FILE, STATE_VERSION, WM_KIND, EmbedError
+from mnerf_jax.wm_step import EmbedState, StepSpec, embed_step, phase_of, step_config
+
+# The sample-buffer site of the embedding's patch renders (budgets.BudgetPolicy).
+BUDGET_SITE = "embed_patch"
+
+
+# ------------------------------------------------------------------------------------- checkpoints
+
+
+def checkpoint_tree(state: EmbedState, geometry: raymarch.Geometry) -> dict[str, Any]:
+    return {
+        "params": state.params,
+        "decoder": state.decoder,
+        "opt_state": state.opt_state,
+        "step": state.step,
+        "key": jax.random.key_data(state.key),
+        "geometry": raymarch.geometry_arrays(geometry),
+    }
+
+
+def checkpoint_meta(config: Config, state: EmbedState, geometry: raymarch.Geometry, keys: keys_lib.KeySet,
+                     budgets: tuple[int, int], schedule: tuple[int, int]) -> dict[str, Any]:  # fmt: skip
+    step = int(state.step)
+    return {
+        # The steps of each phase this run takes: the config's, or phase 2 sized to watermark.time_budget_min.
+        "schedule": [int(n) for n in schedule],
+        "kind": WM_KIND,
+        "version": STATE_VERSION,
+        "step": step,
+        "phase": phase_of(max(step - 1, 0), config.watermark),
+        "fingerprint": config_fingerprint(wm_run.fingerprint_config(config), wm_run.SECTIONS),
+        "config": config.to_dict(),
+        "resolution": list(grids.vm_resolution(state.params["density"])),
+        "geometry": raymarch.geometry_meta(geometry),
+        "num_ids": keys.num_ids,
+        "bits": keys.bits,
+        "budgets": [int(b) for b in budgets],
+    }
+
+
+@dataclasses.dataclass
+class EmbedResult:
+    """What :func:`embed` returns."""
+
+    run_dir: Path
+    keys: keys_lib.KeySet
+    steps: int
+    seconds: float
+    last_metrics: dict[str, float]
+    redone_steps: int
+    schedule: tuple[int, int]  # the steps of each phase it ran (phase 2 sized to the budget when one is set)
+    budget_plan: dict[str, float] | None  # what the time budget was sized from (embed_budget.BudgetPlan)
+
+
+def seed_budgets(policy: budgets.BudgetPolicy, n_rays: int, n_samples: int, budgets: Sequence[int]) -> None:
+    """Start ``policy`` at the budgets a checkpoint recorded (no overflow-and-redo after a resume)."""
+    policy.budgets(BUDGET_SITE, n_rays, n_samples)
+    site = policy._sites[(BUDGET_SITE, n_rays * n_samples)]  # noqa: SLF001
+    site.density, site.colour = int(budgets[0]), int(budgets[1])
+
+
+# A step's new state and its metrics on the host.
+StepOutcome = tuple[EmbedState, dict[str, float]]
+
+
+@dataclasses.dataclass
+class EmbedLoop:
+    """Host side of the embedding: choose ID and view, dispatch steps, grow budgets, checkpoint, report."""
+
+    config: Config
+    split: Any
+    keys: keys_lib.KeySet
+    layout: PatchLayout
+    geometry: raymarch.Geometry
+    policy: budgets.BudgetPolicy
+    store: CheckpointStore
+    out: Path
+    progress: bool
+    on_step: Callable[[int, dict[str, float]], None] | None
+    vgg: Any
+    schedule: tuple[int, int]  # steps of each phase
+    references: np.ndarray | None = None  # clean renders of the training views (watermark.fidelity_psnr)
+    plan: embed_budget.BudgetPlan | None = None  # how the time budget sized phase 2
+
+    def budgets(self) -> tuple[int, int]:
+        return self.policy.budgets(BUDGET_SITE, self.layout.size**2, self.geometry.n_samples)
+
+    def save(self, state: EmbedState) -> None:
+        """Checkpoint, then the decoder as it is now, then keys.json tied to that decoder, then progress."""
+        step = int(state.step)
+        meta = checkpoint_meta(self.config, state, self.geometry, self.keys, self.budgets(), self.schedule)
+        self.store.save(step, checkpoint_tree(state, self.geometry), meta)
+        self.store.wait()
+        dec_meta = decoder_io.save_decoder(self.out / DECODER_FILE, state.decoder, {"embed_step": step},
+                                           wavelet=self.config.watermark.wavelet)  # fmt: skip
+        self.keys = keys_lib.with_fingerprint(self.keys, dec_meta["fingerprint"])
+        keys_lib.save_keys(self.out, self.keys)
+        runs.write_json_atomic(
+            self.out / META_FILE,
+            {"steps_done": step, "phase": meta["phase"], "decoder_fingerprint": dec_meta["fingerprint"],
+             "schedule": meta["schedule"], "budget_plan": None if self.plan is None else self.plan.to_dict()},
+        )
+
+    def dispatch(self, state: EmbedState, step: int, phase: int) -> StepOutcome | None:
+        """Step ``step`` (its IDs and view from the seed) in ``phase``: the new state and host metrics, or
+        None when samples overflowed the buffers (grown now: redo it)."""
+        cfg = self.config.watermark
+        ids, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images),
+                                watermark.ids_per_step_of(cfg, self.keys.num_ids))  # fmt: skip
+        batch = step_batch(self.split, view, self.keys.messages.astype(np.float32), ids, self.references)
+        db, cb = self.budgets()
+        spec = StepSpec(model=self.config.model, wm=step_config(cfg), adam_b1=self.config.train.adam_b1,
+                        adam_b2=self.config.train.adam_b2, phase=phase, height=self.layout.height,
+                        width=self.layout.width, density_budget=db, colour_budget=cb)  # fmt: skip
+        new_state, metrics = embed_step(state, self.geometry, batch, jnp.asarray(self.layout.index),
+                                        jnp.asarray(self.layout.owner), self.vgg,
+                                        jnp.asarray(sum(self.schedule), jnp.int32), spec=spec)  # fmt: skip
+        host = {k: float(v) for k, v in jax.device_get(metrics).items()}
+        counts = {k: int(host[k]) for k in ("density_count", "colour_count")}
+        if self.policy.update(BUDGET_SITE, counts, self.layout.size**2, self.geometry.n_samples):
+            return None
+        host.update(phase=float(phase), id=float(ids[0]), view=float(view))
+        return new_state, host
+
+    def plan_budget(self, state: EmbedState, started: float) -> None:
+        """Time ``PROBE_STEPS`` steps of each phase and a checkpoint (the steps' results discarded), then size
+        phase 2 to ``watermark.time_budget_min`` (``embed_budget``)."""
+        cfg = self.config.watermark
+        phase1, phase2 = self.schedule
+        times: dict[int, list[float]] = {1: [], 2: []}
+        for phase, step in ((1, 0), (2, phase1)):
+            if (phase == 1 and not phase1) or (phase == 2 and not phase2):
+                continue
+            while len(times[phase]) < embed_budget.PROBE_STEPS:
+                tick = time.perf_counter()
+                if self.dispatch(state, step, phase) is not None:
+                    times[phase].append(time.perf_counter() - tick)
+        tick = time.perf_counter()
+        self.save(state)
+        step_s = {p: embed_budget.median_step_seconds(t) if t else 0.0 for p, t in times.items()}
+        try:
+            self.plan = embed_budget.plan_phase2(
+                cfg.time_budget_min * 60.0, time.perf_counter() - started, phase1, step_s[1], step_s[2],
+                time.perf_counter() - tick, cfg.checkpoint_every, phase2,
+            )  # fmt: skip
+        except embed_budget.BudgetError as err:
+            raise EmbedError(f"watermark.time_budget_min: {err}") from None
+        self.schedule = (phase1, self.plan.phase2_steps)
+
+    def run(self, state: EmbedState, stop_at: int | None, started: float) -> EmbedResult:
+        cfg = self.config.watermark
+        t0 = time.perf_counter()
+        if cfg.time_budget_min > 0 and self.plan is None and int(state.step) == 0:
+            self.plan_budget(state, started)
+        total = sum(self.schedule)
+        stop = total if stop_at is None else min(int(stop_at), total)
+        start = step = int(state.step)
+        every = max(int(cfg.checkpoint_every), 1)
+        bar = tqdm(total=stop, initial=start, disable=not self.progress, desc="embed", unit="step",
+                   dynamic_ncols=True)  # fmt: skip
+        recent: list[tuple[float, float, float]] = []
+        last: dict[str, float] = {}
+        redone = 0
+        try:
+            while step < stop:
+                out = self.dispatch(state, step, phase_of(step, cfg))
+                if out is None:
+                    redone += 1  # samples were dropped: redo the step with the grown budgets
+                    continue
+                new_state, host = out
+                if not all(np.isfinite(v) for v in host.values()):
+                    raise EmbedError(f"step {step}: the loss is not finite ({host['loss']}); lower the "
+                                     "learning rates (watermark.lr_*)")  # fmt: skip
+                state, step = new_state, step + 1
+                last = host
+                recent = [*recent, (host["bit_acc"], host["psnr"], host.get("psnr_clean", np.nan))][-20:]
+                bar.update(1)
+                shown = {"phase": int(host["phase"]), "bit_acc": f"{np.mean([r[0] for r in recent]):.3f}",
+                         "psnr": f"{np.mean([r[1] for r in recent]):.2f}"}  # fmt: skip
+                if "psnr_clean" in host:  # against the clean model's render (the quality budget)
+                    shown["psnr_clean"] = f"{np.mean([r[2] for r in recent]):.2f}"
+                bar.set_postfix(shown)
+                if self.on_step is not None:
+                    self.on_step(step - 1, host)
+                if step % every == 0 or step == stop or step == cfg.phase1_steps:
+                    self.save(state)
+        finally:
+            bar.close()
+        if not (self.out / DECODER_FILE).is_file():
+            self.save(state)
+        return EmbedResult(run_dir=self.out, keys=self.keys, steps=int(state.step),
+                           seconds=time.perf_counter() - t0, last_metrics=last, redone_steps=redone,
+                           schedule=self.schedule,
+                           budget_plan=None if self.plan is None else self.plan.to_dict())  # fmt: skip
