@@ -163,9 +163,9 @@ class WatermarkConfig:
     fidelity_psnr: float = 0.0
     lambda_fidelity: float = 10.0
     keep_checkpoints: int = 2
-    # Wall-clock budget of `mnerf embed` in minutes (0: off). On: before the first step, a few steps of
-    # each phase are timed (and discarded), and phase 2 gets as many steps as the budget then holds, at most
-    # phase2_steps (embed_budget.py); the checkpoints record the count it chose, so --resume keeps it.
+    # Wall-clock budget of `mnerf embed` in minutes (0: off). On: the run stops before a step that, with the
+    # last checkpoint, would not end inside it (judged by the steps just run; embed_budget.py). The schedule
+    # is not resized, so a stopped run is the first steps of the full one; --resume continues it.
     time_budget_min: float = 0.0
 
 

@@ -227,7 +227,6 @@ def embed(
     # 0.7 s fitted, so waiting five steps for a better estimate cost more than the overflow it may save.
     policy = budgets.BudgetPolicy(colour_fraction=1.0, fresh_calls=1)
     n_rays, n_samples = layout.size * layout.size, source.geometry.n_samples
-    schedule = watermark.phase_steps(cfg)
     try:
         if resuming:
             meta = store.read_meta()
@@ -245,8 +244,6 @@ def embed(
             )
             geometry = raymarch.geometry_from_checkpoint(tree["geometry"], meta["geometry"])
             seed_budgets(policy, n_rays, n_samples, meta["budgets"])
-            if int(tree["step"]) > 0 and "schedule" in meta:  # a budget sized it: keep that length
-                schedule = (int(meta["schedule"][0]), int(meta["schedule"][1]))
         else:
             keys = keys_lib.generate_keys(num_ids, bits, cfg.min_hamming, cfg.key_seed, loaded.fingerprint)
             root = jax.random.key(cfg.seed)
@@ -272,7 +269,7 @@ def embed(
         state = jax.device_put(state, jax.devices()[0])
         references = clean_references(source, split, progress) if uses_fidelity(cfg) else None
         loop = EmbedLoop(config, split, keys, layout, geometry, policy, store, out, progress, on_step, vgg,
-                         schedule, references)  # fmt: skip
+                         references)  # fmt: skip
         return loop.run(state, stop_at, started)
     finally:
         store.close()

@@ -1,6 +1,6 @@
 """The host side of ``mnerf embed``: the loop that chooses IDs and views, dispatches the jitted step
-(``wm_step.embed_step``), grows the sample buffers, sizes phase 2 to a time budget (``embed_budget``),
-checkpoints and reports. ``embed.embed`` sets it up.
+(``wm_step.embed_step``), grows the sample buffers, checkpoints, reports, and ends the run early when a
+time budget (``embed_budget``) has no room for another step. ``embed.embed`` sets it up.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from mnerf_jax.config import Config
 from mnerf_jax.deferred import PatchLayout
 from mnerf_jax.embed_inputs import step_batch, step_choice
 from mnerf_jax.wm_run import DECODER_FILE, META_FILE, STATE_VERSION, WM_KIND, EmbedError
-from mnerf_jax.wm_step import EmbedState, StepSpec, embed_step, phase_of, step_config
+from mnerf_jax.wm_step import EmbedState, StepSpec, embed_step, phase_of, step_config, total_steps
 
 # The sample-buffer site of the embedding's patch renders (budgets.BudgetPolicy).
 BUDGET_SITE = "embed_patch"
@@ -45,11 +45,9 @@ def checkpoint_tree(state: EmbedState, geometry: raymarch.Geometry) -> dict[str,
 
 
 def checkpoint_meta(config: Config, state: EmbedState, geometry: raymarch.Geometry, keys: keys_lib.KeySet,
-                     budgets: tuple[int, int], schedule: tuple[int, int]) -> dict[str, Any]:  # fmt: skip
+                     budgets: tuple[int, int]) -> dict[str, Any]:  # fmt: skip
     step = int(state.step)
     return {
-        # The steps of each phase this run takes: the config's, or phase 2 sized to watermark.time_budget_min.
-        "schedule": [int(n) for n in schedule],
         "kind": WM_KIND,
         "version": STATE_VERSION,
         "step": step,
@@ -74,8 +72,7 @@ class EmbedResult:
     seconds: float
     last_metrics: dict[str, float]
     redone_steps: int
-    schedule: tuple[int, int]  # the steps of each phase it ran (phase 2 sized to the budget when one is set)
-    budget_plan: dict[str, float] | None  # what the time budget was sized from (embed_budget.BudgetPlan)
+    stopped_by_budget: bool = False  # watermark.time_budget_min ended it before its schedule did
 
 
 def seed_budgets(policy: budgets.BudgetPolicy, n_rays: int, n_samples: int, budgets: Sequence[int]) -> None:
@@ -104,9 +101,8 @@ class EmbedLoop:
     progress: bool
     on_step: Callable[[int, dict[str, float]], None] | None
     vgg: Any
-    schedule: tuple[int, int]  # steps of each phase
     references: np.ndarray | None = None  # clean renders of the training views (watermark.fidelity_psnr)
-    plan: embed_budget.BudgetPlan | None = None  # how the time budget sized phase 2
+    clock: embed_budget.BudgetClock | None = None  # watermark.time_budget_min, when set
 
     def budgets(self) -> tuple[int, int]:
         return self.policy.budgets(BUDGET_SITE, self.layout.size**2, self.geometry.n_samples)
@@ -114,7 +110,8 @@ class EmbedLoop:
     def save(self, state: EmbedState) -> None:
         """Checkpoint, then the decoder as it is now, then keys.json tied to that decoder, then progress."""
         step = int(state.step)
-        meta = checkpoint_meta(self.config, state, self.geometry, self.keys, self.budgets(), self.schedule)
+        tick = time.perf_counter()
+        meta = checkpoint_meta(self.config, state, self.geometry, self.keys, self.budgets())
         self.store.save(step, checkpoint_tree(state, self.geometry), meta)
         self.store.wait()
         dec_meta = decoder_io.save_decoder(self.out / DECODER_FILE, state.decoder, {"embed_step": step},
@@ -123,9 +120,10 @@ class EmbedLoop:
         keys_lib.save_keys(self.out, self.keys)
         runs.write_json_atomic(
             self.out / META_FILE,
-            {"steps_done": step, "phase": meta["phase"], "decoder_fingerprint": dec_meta["fingerprint"],
-             "schedule": meta["schedule"], "budget_plan": None if self.plan is None else self.plan.to_dict()},
+            {"steps_done": step, "phase": meta["phase"], "decoder_fingerprint": dec_meta["fingerprint"]},
         )
+        if self.clock is not None:
+            self.clock.checkpoint_s = time.perf_counter() - tick
 
     def dispatch(self, state: EmbedState, step: int, phase: int) -> StepOutcome | None:
         """Step ``step`` (its IDs and view from the seed) in ``phase``: the new state and host metrics, or
@@ -140,7 +138,7 @@ class EmbedLoop:
                         width=self.layout.width, density_budget=db, colour_budget=cb)  # fmt: skip
         new_state, metrics = embed_step(state, self.geometry, batch, jnp.asarray(self.layout.index),
                                         jnp.asarray(self.layout.owner), self.vgg,
-                                        jnp.asarray(sum(self.schedule), jnp.int32), spec=spec)  # fmt: skip
+                                        jnp.asarray(total_steps(cfg), jnp.int32), spec=spec)  # fmt: skip
         host = {k: float(v) for k, v in jax.device_get(metrics).items()}
         counts = {k: int(host[k]) for k in ("density_count", "colour_count")}
         if self.policy.update(BUDGET_SITE, counts, self.layout.size**2, self.geometry.n_samples):
@@ -148,37 +146,14 @@ class EmbedLoop:
         host.update(phase=float(phase), id=float(ids[0]), view=float(view))
         return new_state, host
 
-    def plan_budget(self, state: EmbedState, started: float) -> None:
-        """Time ``PROBE_STEPS`` steps of each phase and a checkpoint (the steps' results discarded), then size
-        phase 2 to ``watermark.time_budget_min`` (``embed_budget``)."""
-        cfg = self.config.watermark
-        phase1, phase2 = self.schedule
-        times: dict[int, list[float]] = {1: [], 2: []}
-        for phase, step in ((1, 0), (2, phase1)):
-            if (phase == 1 and not phase1) or (phase == 2 and not phase2):
-                continue
-            while len(times[phase]) < embed_budget.PROBE_STEPS:
-                tick = time.perf_counter()
-                if self.dispatch(state, step, phase) is not None:
-                    times[phase].append(time.perf_counter() - tick)
-        tick = time.perf_counter()
-        self.save(state)
-        step_s = {p: embed_budget.median_step_seconds(t) if t else 0.0 for p, t in times.items()}
-        try:
-            self.plan = embed_budget.plan_phase2(
-                cfg.time_budget_min * 60.0, time.perf_counter() - started, phase1, step_s[1], step_s[2],
-                time.perf_counter() - tick, cfg.checkpoint_every, phase2,
-            )  # fmt: skip
-        except embed_budget.BudgetError as err:
-            raise EmbedError(f"watermark.time_budget_min: {err}") from None
-        self.schedule = (phase1, self.plan.phase2_steps)
-
     def run(self, state: EmbedState, stop_at: int | None, started: float) -> EmbedResult:
+        """Steps from ``state.step`` to the schedule's end (or ``stop_at``), or until the time budget (its
+        clock started at ``started``) has no room for another step."""
         cfg = self.config.watermark
         t0 = time.perf_counter()
-        if cfg.time_budget_min > 0 and self.plan is None and int(state.step) == 0:
-            self.plan_budget(state, started)
-        total = sum(self.schedule)
+        if cfg.time_budget_min > 0:
+            self.clock = embed_budget.BudgetClock(cfg.time_budget_min * 60.0, started)
+        total = total_steps(cfg)
         stop = total if stop_at is None else min(int(stop_at), total)
         start = step = int(state.step)
         every = max(int(cfg.checkpoint_every), 1)
@@ -187,12 +162,19 @@ class EmbedLoop:
         recent: list[tuple[float, float, float]] = []
         last: dict[str, float] = {}
         redone = 0
+        stopped_by_budget = False
         try:
             while step < stop:
+                tick = time.perf_counter()
+                if self.clock is not None and not self.clock.room_for_a_step(tick):
+                    stopped_by_budget = True
+                    break
                 out = self.dispatch(state, step, phase_of(step, cfg))
                 if out is None:
                     redone += 1  # samples were dropped: redo the step with the grown budgets
                     continue
+                if self.clock is not None:
+                    self.clock.record_step(time.perf_counter() - tick)
                 new_state, host = out
                 if not all(np.isfinite(v) for v in host.values()):
                     raise EmbedError(f"step {step}: the loss is not finite ({host['loss']}); lower the "
@@ -212,9 +194,12 @@ class EmbedLoop:
                     self.save(state)
         finally:
             bar.close()
-        if not (self.out / DECODER_FILE).is_file():
+        if stopped_by_budget and self.progress:
+            tqdm.write(f"embed: the time budget ({cfg.time_budget_min:g} min) ends the run at step {step} of "
+                      f"{total}; --resume continues it")  # fmt: skip
+        saved_there = step % every == 0 or step == cfg.phase1_steps
+        if (stopped_by_budget and not saved_there) or not (self.out / DECODER_FILE).is_file():
             self.save(state)
         return EmbedResult(run_dir=self.out, keys=self.keys, steps=int(state.step),
                            seconds=time.perf_counter() - t0, last_metrics=last, redone_steps=redone,
-                           schedule=self.schedule,
-                           budget_plan=None if self.plan is None else self.plan.to_dict())  # fmt: skip
+                           stopped_by_budget=stopped_by_budget)  # fmt: skip

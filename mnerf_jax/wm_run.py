@@ -41,8 +41,8 @@ class EmbedError(MnerfError):
 
 def fingerprint_config(config: Config) -> Config:
     """The config with everything that does not change the embedding's trajectory normalised away."""
-    # The time budget only sizes phase 2 before the first step, and checkpoints record the size it chose: a
-    # run stopped before its first step may be resumed under another budget.
+    # The time budget only decides where a run stops, not its trajectory: a stopped run may be resumed under
+    # another budget (or none).
     wm = dataclasses.replace(config.watermark, checkpoint_every=0, keep_checkpoints=0, id_threshold=0.0,
                              time_budget_min=0.0)  # fmt: skip
     return dataclasses.replace(config, train=TrainConfig(), watermark=wm)

@@ -421,44 +421,28 @@ def test_resume_continues_exactly(tiny: TinyRuns) -> None:
         (root / "r_once" / "keys.json").read_text())["messages"]
 
 
-def test_a_time_budget_sizes_phase_two_once_and_resume_keeps_it(tiny: TinyRuns) -> None:
-    # A 30-minute budget holds far more than phase2_steps=3: the cap binds. The probe steps are discarded,
-    # so the run equals the same schedule without a budget; a resume keeps the recorded schedule, even under
-    # a budget that would now hold no step at all.
+def test_a_time_budget_ends_the_run_early_as_a_prefix_of_the_full_one(tiny: TinyRuns) -> None:
+    # A budget far below one step's cost lets the first step run and stops before the second (saved there);
+    # the schedule is not resized, so resuming without a budget gives exactly the unbudgeted run.
     root = tiny.root
     schedule = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=3"]
     args = dict(decoder_path=tiny.decoder, progress=False)
-    budgeted = E.embed(tiny.fit, root / "b_split", 2, 8, stop_at=3,
-                       overrides=[*schedule, "watermark.time_budget_min=30"], **args)  # fmt: skip
-    assert budgeted.schedule == (2, 3) and budgeted.steps == 3
-    plan = budgeted.budget_plan
-    assert plan is not None and plan["phase2_steps"] == 3 and plan["phase2_step_s"] > 0
-    assert plan["phase1_step_s"] > 0 and plan["checkpoint_s"] > 0 and 0 < plan["elapsed_s"] < 30 * 60
-    record = json.loads((root / "b_split" / "embed.json").read_text())
-    assert record["schedule"] == [2, 3] and record["budget_plan"]["phase2_steps"] == 3
-    resumed = E.embed(tiny.fit, root / "b_split", 2, 8, resume=True,
-                      overrides=[*schedule, "watermark.time_budget_min=0.001"], **args)  # fmt: skip
-    assert resumed.steps == 5 and resumed.schedule == (2, 3) and resumed.budget_plan is None
-    plain = E.embed(tiny.fit, root / "b_plain", 2, 8, overrides=schedule, **args)
-    assert plain.budget_plan is None
-    a = wm_run.load_watermarked_run(root / "b_split")
-    b = wm_run.load_watermarked_run(root / "b_plain")
-    assert a.step == b.step == 5
-    for x, y in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params), strict=True):
-        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
-
-
-def test_a_budget_without_room_for_phase_two_stops_before_the_first_step(tiny: TinyRuns) -> None:
-    root = tiny.root
-    schedule = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=3"]
-    args = dict(decoder_path=tiny.decoder, progress=False)
-    with pytest.raises(MnerfError, match="time_budget_min: a budget of 0.0 min holds no phase-2 step"):
-        E.embed(tiny.fit, root / "b_small", 2, 8, overrides=[*schedule, "watermark.time_budget_min=0.0001"],
-                **args)  # fmt: skip
-    # Nothing is lost: the run was saved at step 0 and resumes under a budget that holds it.
-    resumed = E.embed(tiny.fit, root / "b_small", 2, 8, resume=True,
-                      overrides=[*schedule, "watermark.time_budget_min=30"], **args)  # fmt: skip
-    assert resumed.steps == 5 and resumed.schedule == (2, 3)
+    tiny_budget = [*schedule, "watermark.time_budget_min=0.001"]
+    stopped = E.embed(tiny.fit, root / "b_split", 2, 8, overrides=tiny_budget, **args)
+    assert stopped.stopped_by_budget and stopped.steps == 1
+    assert json.loads((root / "b_split" / "embed.json").read_text())["steps_done"] == 1
+    resumed = E.embed(tiny.fit, root / "b_split", 2, 8, resume=True, overrides=schedule, **args)
+    assert resumed.steps == 5 and not resumed.stopped_by_budget
+    roomy = E.embed(tiny.fit, root / "b_roomy", 2, 8, overrides=[*schedule, "watermark.time_budget_min=30"],
+                    **args)  # fmt: skip
+    assert roomy.steps == 5 and not roomy.stopped_by_budget
+    E.embed(tiny.fit, root / "b_plain", 2, 8, overrides=schedule, **args)
+    a, b, c = (wm_run.load_watermarked_run(root / name) for name in ("b_split", "b_roomy", "b_plain"))
+    assert a.step == b.step == c.step == 5
+    for x, y, z in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params), jax.tree.leaves(c.params),
+                       strict=True):  # fmt: skip
+        np.testing.assert_allclose(np.asarray(x), np.asarray(z), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(y), np.asarray(z), rtol=1e-5, atol=1e-6)
     with pytest.raises(MnerfError, match="time_budget_min must be ≥ 0"):
         E.embed(tiny.fit, root / "b_bad", 2, 8, overrides=[*schedule, "watermark.time_budget_min=-1"], **args)
 

@@ -166,9 +166,9 @@ def test_the_cpu_preset_moves_steps_from_phase_1_to_phase_2() -> None:
     from mnerf_jax import config
 
     # `mnerf embed --config embed_cpu` reads the preset's [watermark] section only: today's defaults with
-    # 100 phase-1 steps and phase 2 sized to an hour, at most 3,200 steps (the lego protocol on 2 cores).
+    # a 100 + 2,000 step schedule ended by a 60-minute budget (the lego protocol on 2 cores).
     cfg = config.load_preset("embed_cpu").watermark
-    assert W.phase_steps(cfg, num_ids=16) == (100, 3200) and cfg.time_budget_min == 60
+    assert W.phase_steps(cfg, num_ids=16) == (100, 2000) and cfg.time_budget_min == 60
     plain = dataclasses.replace(cfg, phase1_steps=-1, phase2_steps=-1, time_budget_min=0.0)
     assert plain == WatermarkConfig()
 

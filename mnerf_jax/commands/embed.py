@@ -29,8 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, default=None, help="scene directory (default: the fitted run's)")
     parser.add_argument("--resume", action="store_true", help="continue the embedding in --out")
     parser.add_argument("--time-budget", type=float, default=None, metavar="MIN",
-                        help="finish within MIN minutes of wall time: phase 2 gets the steps that fit, at "
-                             "most watermark.phase2_steps (sets watermark.time_budget_min)")  # fmt: skip
+                        help="end within MIN minutes of wall time: stop before a step that would not fit "
+                             "(the run so far is saved; --resume continues it; sets "
+                             "watermark.time_budget_min)")  # fmt: skip
     parser.add_argument("--steps", type=int, default=None, metavar="K",
                         help="stop after K steps in all (a checkpoint is written; --resume continues)")
     parser.add_argument("--eval-views", type=int, default=-1, metavar="V",
@@ -62,13 +63,12 @@ def run(args: argparse.Namespace) -> int:
         "bits": result.keys.bits,
         "min_hamming": result.keys.min_hamming,
         "steps": result.steps,
-        "schedule": list(result.schedule),
         "seconds": round(result.seconds, 1),
         "last_bit_accuracy": last.get("bit_acc"),
         "last_psnr": last.get("psnr"),
     }
-    if result.budget_plan is not None:
-        summary["budget_plan"] = result.budget_plan
+    if result.stopped_by_budget:
+        summary["stopped_by_budget"] = True
     print(f"mnerf embed: {json.dumps(summary)}")
     if args.eval_views >= 0:
         evaluation = wm_eval.evaluate_watermarked_run(
