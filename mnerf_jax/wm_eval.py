@@ -101,10 +101,8 @@ def identify(
       messages: ``[N, L]`` keys.
       threshold: decision threshold on the Bonferroni-corrected p-value.
     """
-    decoded = np.atleast_2d(np.asarray(decoded, np.uint8))
     messages = np.asarray(messages, np.uint8)
-    _check_bits(decoded, messages)
-    agree = (decoded[:, None, :] == messages[None, :, :]).sum(-1)  # [B, N]
+    agree = _agreement(np.atleast_2d(np.asarray(decoded, np.uint8)), messages)
     return _identification(agree, agree, messages, threshold)
 
 
@@ -121,15 +119,16 @@ def identify_logits(
     """
     logits = np.atleast_2d(np.asarray(logits, np.float64))
     messages = np.asarray(messages, np.uint8)
-    _check_bits(logits, messages)
+    agree = _agreement(logits_to_bits(logits), messages)
     signs = 2.0 * messages.astype(np.float64) - 1.0
-    agree = (logits_to_bits(logits)[:, None, :] == messages[None, :, :]).sum(-1)  # [B, N]
     return _identification(logits @ signs.T, agree, messages, threshold)
 
 
-def _check_bits(decoded: np.ndarray, messages: np.ndarray) -> None:
-    if decoded.shape[-1] != messages.shape[-1]:
-        raise ValueError(f"decoded messages have {decoded.shape[-1]} bits, the keys {messages.shape[-1]}")
+def _agreement(bits: np.ndarray, messages: np.ndarray) -> np.ndarray:
+    """Agreeing bits ``[B, N]`` of decoded ``bits [B, L]`` with each key of ``messages [N, L]``."""
+    if bits.shape[-1] != messages.shape[-1]:
+        raise ValueError(f"decoded messages have {bits.shape[-1]} bits, the keys {messages.shape[-1]}")
+    return (bits[:, None, :] == messages[None, :, :]).sum(-1)
 
 
 def _identification(
