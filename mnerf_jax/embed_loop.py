@@ -104,6 +104,15 @@ class EmbedLoop:
     references: np.ndarray | None = None  # clean renders of the training views (watermark.fidelity_psnr)
     clock: embed_budget.BudgetClock | None = None  # watermark.time_budget_min, when set
 
+    def __post_init__(self) -> None:
+        # What every step passes unchanged, made once rather than per step.
+        cfg = self.config.watermark
+        self._messages = self.keys.messages.astype(np.float32)
+        self._index, self._owner = jnp.asarray(self.layout.index), jnp.asarray(self.layout.owner)
+        self._step_cfg = step_config(cfg)
+        self._total = jnp.asarray(total_steps(cfg), jnp.int32)
+        self._ids_per_step = watermark.ids_per_step_of(cfg, self.keys.num_ids)
+
     def budgets(self) -> tuple[int, int]:
         return self.policy.budgets(BUDGET_SITE, self.layout.size**2, self.geometry.n_samples)
 
@@ -129,16 +138,14 @@ class EmbedLoop:
         """Step ``step`` (its IDs and view from the seed) in ``phase``: the new state and host metrics, or
         None when samples overflowed the buffers (grown now: redo it)."""
         cfg = self.config.watermark
-        ids, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images),
-                                watermark.ids_per_step_of(cfg, self.keys.num_ids))  # fmt: skip
-        batch = step_batch(self.split, view, self.keys.messages.astype(np.float32), ids, self.references)
+        ids, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images), self._ids_per_step)
+        batch = step_batch(self.split, view, self._messages, ids, self.references)
         db, cb = self.budgets()
-        spec = StepSpec(model=self.config.model, wm=step_config(cfg), adam_b1=self.config.train.adam_b1,
+        spec = StepSpec(model=self.config.model, wm=self._step_cfg, adam_b1=self.config.train.adam_b1,
                         adam_b2=self.config.train.adam_b2, phase=phase, height=self.layout.height,
                         width=self.layout.width, density_budget=db, colour_budget=cb)  # fmt: skip
-        new_state, metrics = embed_step(state, self.geometry, batch, jnp.asarray(self.layout.index),
-                                        jnp.asarray(self.layout.owner), self.vgg,
-                                        jnp.asarray(total_steps(cfg), jnp.int32), spec=spec)  # fmt: skip
+        new_state, metrics = embed_step(state, self.geometry, batch, self._index, self._owner, self.vgg,
+                                        self._total, spec=spec)  # fmt: skip
         host = {k: float(v) for k, v in jax.device_get(metrics).items()}
         counts = {k: int(host[k]) for k in ("density_count", "colour_count")}
         if self.policy.update(BUDGET_SITE, counts, self.layout.size**2, self.geometry.n_samples):
