@@ -58,6 +58,8 @@ Params = dict
 VARIANTS = ("multinerf", "no_grid", "no_film", "frozen_geometry", "early", "waterf", "waterf_mod")
 _GRID_VARIANTS = ("multinerf", "no_film", "frozen_geometry", "early")
 _FILM_VARIANTS = ("multinerf", "no_grid", "frozen_geometry", "early")
+# Emb's hidden activation (WatermarkConfig.emb_activation; config.py says what each did).
+EMB_ACTIVATIONS = {"relu": jax.nn.relu, "silu": jax.nn.silu, "tanh": jnp.tanh}
 # Frequencies of the position encoding that feeds the no_grid variant's MLP.
 POS_FREQS = 6
 POS_HIDDEN = 64
@@ -78,6 +80,9 @@ def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
         raise WatermarkError(f"watermark.wm_ranks must be ≥ 0 with a positive sum, got {cfg.wm_ranks}")
     if cfg.emb_dim < 1 or cfg.emb_hidden < 1:
         raise WatermarkError("watermark.emb_dim and watermark.emb_hidden must be ≥ 1")
+    if cfg.emb_activation not in EMB_ACTIVATIONS:
+        raise WatermarkError(f"unknown watermark.emb_activation {cfg.emb_activation!r} "
+                             f"(known: {', '.join(EMB_ACTIVATIONS)})")  # fmt: skip
     n = cfg.num_ids if num_ids is None else num_ids
     if n < 1:
         raise WatermarkError(f"the number of IDs must be ≥ 1, got {n}")
@@ -268,10 +273,11 @@ def shrink_watermark(params: Params, lo: tuple[int, ...], hi: tuple[int, ...]) -
 # ---------------------------------------------------------------------------------------------- forward
 
 
-def embed_id(wm: Params, index: Array | int, num_ids: int) -> Array:
-    """``e_n = Emb(onehot(n))``: ``[emb_dim]``. ``index`` may be traced (one compilation for all IDs)."""
+def embed_id(wm: Params, index: Array | int, num_ids: int, activation: str = "relu") -> Array:
+    """``e_n = Emb(onehot(n))``: ``[emb_dim]``. ``index`` may be traced (one compilation for all IDs);
+    ``activation`` is a key of ``EMB_ACTIVATIONS``."""
     onehot = jax.nn.one_hot(jnp.asarray(index, jnp.int32), num_ids, dtype=jnp.float32)
-    h = jax.nn.relu(onehot @ wm["emb"]["w0"] + wm["emb"]["b0"])
+    h = EMB_ACTIVATIONS[activation](onehot @ wm["emb"]["w0"] + wm["emb"]["b0"])
     return h @ wm["emb"]["w1"] + wm["emb"]["b1"]
 
 
@@ -291,7 +297,7 @@ def condition(params: Params, index: Array | int, cfg: WatermarkConfig) -> Any:
         return None
     wm = params["wm"]
     num_ids = int(wm["emb"]["w0"].shape[0])
-    e = embed_id(wm, index, num_ids)
+    e = embed_id(wm, index, num_ids, cfg.emb_activation)
     if uses_film(cfg):
         gamma, beta = film(wm, e)
         return {"gamma": gamma, "beta": beta}

@@ -147,6 +147,28 @@ def test_unknown_variant_and_bad_ranks_are_refused() -> None:
         W.check_config(WatermarkConfig(wm_ranks=(0, 0, 0)))
 
 
+def test_every_id_keeps_a_gradient_through_emb_where_relu_loses_it() -> None:
+    # Emb sees a one-hot ID: with ReLU (the default), a hidden unit that is negative for an ID passes that ID
+    # no gradient again; the silu and tanh options have no dead zone. All units pushed negative here.
+    def grads(activation: str) -> np.ndarray:
+        cfg = WatermarkConfig(emb_activation=activation)
+        wm = _params(cfg)["wm"]
+        wm["emb"]["b0"] = wm["emb"]["b0"] - 5.0
+        g = jax.grad(lambda w: jnp.sum(W.film(w, W.embed_id(w, 1, 4, activation))[0] ** 2))(wm)
+        return np.asarray(g["emb"]["w0"])
+
+    assert np.all(grads("relu") == 0)
+    silu = grads("silu")
+    assert np.all(np.abs(silu[1]) > 0) and np.all(silu[[0, 2, 3]] == 0)  # only the drawn ID's row learns
+    assert np.all(np.abs(grads("tanh")[1]) > 0)
+    params = _params(WatermarkConfig())
+    relu, silu = (np.asarray(W.condition(params, 1, WatermarkConfig(emb_activation=a))["gamma"])
+                  for a in ("relu", "silu"))  # fmt: skip
+    assert np.abs(relu - silu).max() > 1e-4  # condition() follows the config
+    with pytest.raises(MnerfError, match="emb_activation"):
+        W.check_config(WatermarkConfig(emb_activation="softsign"))
+
+
 def test_the_automatic_schedule_grows_with_the_ids() -> None:
     from mnerf_jax import wm_step as S
 
