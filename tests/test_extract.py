@@ -41,6 +41,20 @@ def test_decode_batch_single_and_chunks(variables: dict) -> None:
     )
 
 
+def test_chunks_are_even_and_within_the_budgets() -> None:
+    assert extract.chunk_size(32, 200, 200) == 11  # 3 calls of 11 (33 decoded), not 13 + 13 + 6 (39)
+    assert extract.chunk_size(32, 100, 100) == 32
+    assert extract.chunk_size(5, 20, 24, batch_size=2) == 2
+    assert extract.chunk_size(3, 4000, 4000) == 1
+    for n in range(1, 80):
+        for side in (25, 100, 200, 300, 800):
+            chunk = extract.chunk_size(n, side, side)
+            calls = -(-n // chunk)
+            assert chunk <= 32 and (chunk == 1 or chunk * side * side <= extract.PIXEL_BUDGET)
+            assert calls * chunk - n < calls  # padding: less than one image a call
+            assert calls == -(-n // max(1, min(32, n, extract.PIXEL_BUDGET // side**2)))  # the fewest calls
+
+
 def test_bits_and_accuracy() -> None:
     logits = jnp.array([[0.3, -0.2, 0.0, 1.0], [-1.0, -2.0, 3.0, 0.1]])
     np.testing.assert_array_equal(extract.bits_from_logits(logits), [[1, 0, 0, 1], [0, 0, 1, 1]])
