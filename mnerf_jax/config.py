@@ -124,6 +124,11 @@ class WatermarkConfig:
     lambda_tv: float = 0.02
     lambda_ssim: float = 0.2
     bce_temperature: float = 10.0
+    # Phase 1 and 2: each of a step's K renders' message BCE weighted by (its BCE / the step's)^id_loss_power
+    # (a constant: no gradient through the weights), normalised to a weighted mean. Not in the paper (0 there,
+    # the plain mean). With 16 IDs two or three of them stay weak in a short run (their FiLM pair near the
+    # IDs' mean); a weight > 0 gives their renders more of the loss.
+    id_loss_power: float = 0.0
     perceptual: str = "watson"  # watson | vgg
     augment_strength: str = "low"
     # Phase 2 draws its augmentations from these (names of augment.AUGMENTATIONS); empty: all 14, the paper's

@@ -208,6 +208,20 @@ def patch_loss(cfg: WatermarkConfig, rgb: jax.Array, target: jax.Array) -> jax.A
     return loss
 
 
+def message_loss(cfg: WatermarkConfig, logits: jax.Array, message: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(message term, mean BCE)`` of ``logits [K, L]`` against ``message [K, L]`` (BCE at
+    ``bce_temperature``). The term is the mean BCE, or with ``id_loss_power`` p > 0 and K > 1 the mean of
+    the K renders' BCEs weighted by ``BCE_k^p`` (held constant): the renders read worst weigh most.
+    """
+    if cfg.id_loss_power <= 0 or logits.shape[0] == 1:
+        bce = losses.bce_with_logits(logits, message, cfg.bce_temperature)
+        return bce, bce
+    per_id = jax.vmap(lambda z, m: losses.bce_with_logits(z, m, cfg.bce_temperature))(logits, message)
+    weight = jax.lax.stop_gradient(per_id) ** cfg.id_loss_power
+    weight = weight / jnp.maximum(jnp.sum(weight), jnp.finfo(jnp.float32).tiny)
+    return jnp.sum(weight * per_id), jnp.mean(per_id)
+
+
 def make_image_loss(
     spec: StepSpec,
     key: jax.Array,
@@ -222,7 +236,8 @@ def make_image_loss(
     ``image`` holds the K renders of one view side by side in its channels (:func:`split_renders`), one
     per row of ``message [K, L]``; each term is the mean over the K renders.
     Phase 2: ``augment_per_step`` random augmentations (``key``) → LL2 → decoder → BCE(T) against
-    the render's message, plus (``lambda_clean``) BCE(T) of the equally augmented ``target_image`` against ½.
+    the render's message (:func:`message_loss`), plus (``lambda_clean``) BCE(T) of the equally augmented
+    ``target_image`` against ½.
     Phase 1: no augmentation, plus the perceptual term against ``target_image``. Both phases, given the clean
     model's render ``reference [H, W, 3]`` (quality budget on): ``lambda_fidelity ·`` :func:`fidelity_loss`.
     ``decoder_state``: the decoder's variables (BatchNorm statistics, pooling); their ``params`` are replaced
@@ -242,8 +257,8 @@ def make_image_loss(
 
     def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
         renders = split_renders(image)  # [K, H, W, 3]
-        bce = losses.bce_with_logits(decode(renders, dec_params), message, cfg.bce_temperature)
-        loss = cfg.lambda_message * bce
+        term, bce = message_loss(cfg, decode(renders, dec_params), message)
+        loss = cfg.lambda_message * term
         if spec.phase == 2 and cfg.lambda_clean:
             clean_logits = decode(target_image[None], dec_params)
             loss = loss + cfg.lambda_clean * losses.bce_with_logits(clean_logits, 0.5, cfg.bce_temperature)
