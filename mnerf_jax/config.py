@@ -124,10 +124,10 @@ class WatermarkConfig:
     lambda_tv: float = 0.02
     lambda_ssim: float = 0.2
     bce_temperature: float = 10.0
-    # Phase 1 and 2: each of a step's K renders' message BCE weighted by (its BCE / the step's)^id_loss_power
-    # (a constant: no gradient through the weights), normalised to a weighted mean. Not in the paper (0 there,
-    # the plain mean). With 16 IDs two or three of them stay weak in a short run (their FiLM pair near the
-    # IDs' mean); a weight > 0 gives their renders more of the loss.
+    # Both phases: the field learns from the mean of a step's K message BCEs weighted by BCE_k^id_loss_power
+    # (held constant), the decoder from the plain mean (wm_step.message_loss). Not in the paper (0 there:
+    # the plain mean for both). With 16 IDs two or three stay weak in a short run (their FiLM pair near the
+    # IDs' mean); a power > 0 gives their renders more of the field's gradient.
     id_loss_power: float = 0.0
     perceptual: str = "watson"  # watson | vgg
     augment_strength: str = "low"

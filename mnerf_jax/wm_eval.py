@@ -250,7 +250,8 @@ def evaluate_watermarked_run(
     ``lpips_clean_model`` (vs the clean model's renders), ``clean_psnr`` (clean model vs ground truth),
     ``identification_accuracy`` (best-matching key by soft correlation is the rendered ID;
     ``identification_accuracy_hard``: by agreeing bits), ``verified_identification_accuracy`` (and its p-value
-    passes ``threshold``), ``clean_bit_accuracy``, ``clean_false_detection_rate``,
+    passes ``threshold``), ``clean_bit_accuracy``, ``clean_false_detection_rate`` (and per ID, which keys
+    the false detections claimed: ``clean_false_detection_ids [N]``),
     ``num_ids``, ``bits``, ``split``, ``views``, ``per_id`` and ``identification`` (confusion matrices).
     With ``keep_renders`` the returned dict (not the file) also holds ``_renders`` ``{ID: [V, H, W, 3]}``,
     ``_clean`` and ``_gt``.
@@ -366,11 +367,15 @@ def evaluate_watermarked_run(
             "clean_lpips": clean_q["lpips"],
             "clean_bit_accuracy": float(np.mean([bit_accuracy(clean_bits, m).mean() for m in keys.messages])),
             "clean_false_detection_rate": false_detection_summary(clean_ident)["false_detection_rate"],
+            # Which keys the false detections claimed (clean renders per ID): a decoder biased towards
+            # some keys claims those.
+            "clean_false_detection_ids": np.bincount(clean_ident.decision[clean_ident.decision >= 0],
+                                                     minlength=n_ids).tolist(),
         })  # fmt: skip
     else:
         result.update(dict.fromkeys((
             "psnr_clean_model", "ssim_clean_model", "lpips_clean_model", "clean_psnr", "clean_ssim",
-            "clean_lpips", "clean_bit_accuracy", "clean_false_detection_rate",
+            "clean_lpips", "clean_bit_accuracy", "clean_false_detection_rate", "clean_false_detection_ids",
         )))  # fmt: skip
     runs.write_json_atomic(run_dir / f"eval-{split}.json", result)
     if keep_renders:

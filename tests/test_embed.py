@@ -711,35 +711,45 @@ def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
     assert emb_rows[0] > 0 and emb_rows[2] > 0 and emb_rows[1] == 0 and emb_rows[3] == 0
 
 
-def test_id_loss_power_weights_each_ids_bce_by_its_own_size() -> None:
-    # watermark.id_loss_power p: the message term is Σ_k w_k·BCE_k with w ∝ BCE^p held constant; p = 0 is the
-    # plain mean, and one ID is its own BCE whatever p.
-    from mnerf_jax import losses
+def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
+    # watermark.id_loss_power p: the renders' gradient is that of Σ_k w_k·BCE_k with w ∝ BCE^p held constant;
+    # the decoder's gradient and the value stay the plain mean's. p = 0 is the plain mean throughout, and one
+    # ID is its own BCE whatever p.
+    from mnerf_jax import losses, watermark
     from mnerf_jax.config import WatermarkConfig
 
-    logits = jax.random.normal(jax.random.PRNGKey(0), (4, 8)) * 0.2
-    message = (jax.random.uniform(jax.random.PRNGKey(1), (4, 8)) > 0.5).astype(jnp.float32)
+    renders = jax.random.uniform(jax.random.PRNGKey(0), (4, 3, 3, 3))
+    dec = jax.random.normal(jax.random.PRNGKey(1), (27, 8)) * 0.1
+    message = (jax.random.uniform(jax.random.PRNGKey(2), (4, 8)) > 0.5).astype(jnp.float32)
+
+    def decode(r: jax.Array, p: jax.Array) -> jax.Array:  # a linear stand-in for augment → LL2 → decoder
+        return r.reshape(r.shape[0], -1) @ p
+
+    def weighted(r: jax.Array, p: jax.Array, w: np.ndarray) -> jax.Array:
+        logits = decode(r, p)
+        return sum(float(wk) * losses.bce_with_logits(logits[k], message[k]) for k, wk in enumerate(w))
+
+    logits = decode(renders, dec)
     per_id = np.array([float(losses.bce_with_logits(z, m)) for z, m in zip(logits, message, strict=True)])
     assert per_id.max() > 1.2 * per_id.min()  # the IDs' losses differ, so the weighting shows
-    plain, bce = S.message_loss(WatermarkConfig(), logits, message)
-    np.testing.assert_allclose([plain, bce], [per_id.mean()] * 2, rtol=1e-5)
-    for power in (1.0, 2.0):
+    uniform = np.full(4, 0.25)
+    g_plain = jax.grad(weighted, argnums=(0, 1))(renders, dec, uniform)
+    for power in (0.0, 1.0, 2.0):
         cfg = WatermarkConfig(id_loss_power=power)
-        term, bce = S.message_loss(cfg, logits, message)
+        term, bce = S.message_loss(cfg, decode, renders, dec, message)
+        np.testing.assert_allclose([term, bce], [per_id.mean()] * 2, rtol=1e-5)
+        g_r, g_p = jax.grad(lambda r, p, c=cfg: S.message_loss(c, decode, r, p, message)[0],
+                            argnums=(0, 1))(renders, dec)  # fmt: skip
         w = per_id**power / np.sum(per_id**power)
-        np.testing.assert_allclose(term, np.sum(w * per_id), rtol=1e-5)
-        np.testing.assert_allclose(bce, per_id.mean(), rtol=1e-5)  # the reported BCE stays the mean
-        assert float(term) > per_id.mean()  # the worse-read IDs weigh more
-        # The weights are constants: the gradient is the weighted sum of each ID's own gradient.
-        g = jax.grad(lambda z, c=cfg: S.message_loss(c, z, message)[0])(logits)
-        g_each = jax.grad(lambda z, w=w: sum(float(wk) * losses.bce_with_logits(z[k], message[k])
-                                             for k, wk in enumerate(w)))(logits)  # fmt: skip
-        np.testing.assert_allclose(g, g_each, rtol=1e-4, atol=1e-8)
-    one, _ = S.message_loss(WatermarkConfig(id_loss_power=2.0), logits[:1], message[:1])
+        np.testing.assert_allclose(g_r, jax.grad(weighted)(renders, dec, w), rtol=1e-4, atol=1e-8)
+        np.testing.assert_allclose(g_p, g_plain[1], rtol=1e-4, atol=1e-8)
+        if power:  # the worse-read IDs' renders get more of the gradient than the plain mean gives them
+            worst, best = int(np.argmax(per_id)), int(np.argmin(per_id))
+            ratio = np.abs(np.asarray(g_r)).sum((1, 2, 3)) / np.abs(np.asarray(g_plain[0])).sum((1, 2, 3))
+            assert ratio[worst] > 1.0 > ratio[best]
+    one, _ = S.message_loss(WatermarkConfig(id_loss_power=2.0), decode, renders[:1], dec, message[:1])
     np.testing.assert_allclose(one, per_id[0], rtol=1e-5)
     with pytest.raises(MnerfError, match="id_loss_power"):
-        from mnerf_jax import watermark
-
         watermark.check_config(WatermarkConfig(id_loss_power=-1.0))
 
 

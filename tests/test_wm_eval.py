@@ -239,7 +239,7 @@ def test_tiny_run_identifies_its_ids(tiny_eval) -> None:
     assert saved["bit_accuracy_png_mean"] >= saved["bit_accuracy_mean"] - 0.1
     # Clean renders carry no watermark: about chance, and never a confident claim at 8 bits × 2 IDs.
     assert 0.25 <= saved["clean_bit_accuracy"] <= 0.75
-    assert saved["clean_false_detection_rate"] == 0.0
+    assert saved["clean_false_detection_rate"] == 0.0 and saved["clean_false_detection_ids"] == [0, 0]
     assert saved["identification"]["min_attainable_p"] == pytest.approx(2 / 256)
     # PNGs of every ID and view were written and decode like the float renders.
     assert len(list((runs.wm / "eval-test").glob("id*/*.png"))) == 2 * 6
