@@ -184,11 +184,14 @@ def identification_summary(
     }
 
 
-def false_detection_summary(ident: Identification) -> dict[str, Any]:
-    """How often unwatermarked images are claimed (decision ≠ −1): should be ≤ the threshold."""
+def false_detection_summary(ident: Identification, num_ids: int = 0) -> dict[str, Any]:
+    """How often unwatermarked images are claimed (decision ≠ −1): should be ≤ the threshold; and how many
+    were claimed as each of the ``num_ids`` keys (a decoder biased towards some keys claims those)."""
+    claimed = ident.decision[ident.decision >= 0]
     return {
         "false_detection_rate": float((ident.decision >= 0).mean()) if ident.decision.size else math.nan,
         "mean_best_agreement": float(ident.bit_accuracy.mean()) if ident.decision.size else math.nan,
+        "claimed_per_id": np.bincount(claimed, minlength=num_ids).tolist(),
     }
 
 
@@ -358,6 +361,7 @@ def evaluate_watermarked_run(
         clean_logits = _decode(decoder, clean)
         clean_bits = logits_to_bits(clean_logits)
         clean_ident = identify_logits(clean_logits, keys.messages, thr)
+        false_claims = false_detection_summary(clean_ident, n_ids)
         result.update({
             "psnr_clean_model": vs_clean["psnr"],
             "ssim_clean_model": vs_clean["ssim"],
@@ -366,11 +370,8 @@ def evaluate_watermarked_run(
             "clean_ssim": clean_q["ssim"],
             "clean_lpips": clean_q["lpips"],
             "clean_bit_accuracy": float(np.mean([bit_accuracy(clean_bits, m).mean() for m in keys.messages])),
-            "clean_false_detection_rate": false_detection_summary(clean_ident)["false_detection_rate"],
-            # Which keys the false detections claimed (clean renders per ID): a decoder biased towards
-            # some keys claims those.
-            "clean_false_detection_ids": np.bincount(clean_ident.decision[clean_ident.decision >= 0],
-                                                     minlength=n_ids).tolist(),
+            "clean_false_detection_rate": false_claims["false_detection_rate"],
+            "clean_false_detection_ids": false_claims["claimed_per_id"],
         })  # fmt: skip
     else:
         result.update(dict.fromkeys((
