@@ -47,7 +47,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from mnerf_jax import field, grids
+from mnerf_jax import field, grids, significance
 from mnerf_jax.config import ModelConfig, WatermarkConfig
 from mnerf_jax.errors import MnerfError
 from mnerf_jax.render import FieldFns, TensorfDensity
@@ -97,6 +97,9 @@ def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
     if not cfg.id_loss_power >= 0:
         raise WatermarkError(f"watermark.id_loss_power must be ≥ 0 (0: every ID's BCE weighted alike), got "
                              f"{cfg.id_loss_power}")  # fmt: skip
+    if cfg.id_test not in significance.ID_TESTS:
+        raise WatermarkError(f"watermark.id_test must be one of {', '.join(significance.ID_TESTS)}, got "
+                             f"{cfg.id_test!r}")  # fmt: skip
     if not cfg.time_budget_min >= 0:
         raise WatermarkError(f"watermark.time_budget_min must be ≥ 0 (0: off), got {cfg.time_budget_min}")
     if cfg.fidelity_psnr < 0 or cfg.lambda_fidelity < 0:

@@ -44,7 +44,7 @@ def fingerprint_config(config: Config) -> Config:
     # The time budget only decides where a run stops, not its trajectory: a stopped run may be resumed under
     # another budget (or none).
     wm = dataclasses.replace(config.watermark, checkpoint_every=0, keep_checkpoints=0, id_threshold=0.0,
-                             time_budget_min=0.0)  # fmt: skip
+                             id_test="binomial", time_budget_min=0.0)  # fmt: skip
     return dataclasses.replace(config, train=TrainConfig(), watermark=wm)
 
 

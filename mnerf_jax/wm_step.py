@@ -69,7 +69,7 @@ def total_steps(cfg: WatermarkConfig) -> int:
 # checkpoints, identification, the time budget). The learning-rate decay's length is an argument of the
 # compiled step, so the schedule can be sized after its steps are timed (embed_budget.py).
 _HOST_ONLY_FIELDS = (
-    "min_hamming", "key_seed", "checkpoint_every", "seed", "id_threshold", "keep_checkpoints",
+    "min_hamming", "key_seed", "checkpoint_every", "seed", "id_threshold", "id_test", "keep_checkpoints",
     "time_budget_min", "phase1_steps", "phase2_steps",
 )  # fmt: skip
 

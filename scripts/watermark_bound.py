@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mnerf_jax import augment, decoder_io, informed, keys, wm_eval
+from mnerf_jax import augment, decoder_io, identification, informed, keys
 from mnerf_jax import decoder as dec
 from mnerf_jax.config import DataConfig
 from mnerf_jax.data import load_scene
@@ -85,7 +85,7 @@ def bound_figures(
 def _summary(logits: np.ndarray, messages: np.ndarray, ids: np.ndarray) -> dict[str, float]:
     acc = ((logits > 0) == messages[ids].astype(bool)).mean(axis=1)
     per_id = [float(acc[ids == i].mean()) for i in range(messages.shape[0]) if np.any(ids == i)]
-    ident = wm_eval.identify_logits(logits, messages)
+    ident = identification.identify_logits(logits, messages)
     return {
         "bit_accuracy_mean": float(acc.mean()),
         "bit_accuracy_min_id": float(min(per_id)),

@@ -128,7 +128,8 @@ def test_extract_identifies_the_id_of_rendered_images(tiny: TinyRuns, id_renders
         assert r["id"] == -1 and r["threshold"] == 1e-3
     code, out, _ = mnerf("extract", "--run", tiny.wm, *paths)
     lines = out.splitlines()
-    assert code == 0 and len(lines) == 4 and all("no watermark (p ≥ 0.001; best ID" in line for line in lines)
+    assert code == 0 and len(lines) == 4
+    assert all("no watermark (binomial p ≥ 0.001; best ID" in line for line in lines)
     # With a looser threshold an image whose bits agree enough with its key is claimed.
     code, out, _ = mnerf("extract", "--run", tiny.wm, *paths, "--threshold", "0.5", "--json")
     loose = [json.loads(line) for line in out.splitlines()]
@@ -136,6 +137,14 @@ def test_extract_identifies_the_id_of_rendered_images(tiny: TinyRuns, id_renders
         assert r["id"] == (r["best_id"] if r["p_corrected"] < 0.5 else -1)
         assert identification_line(r).startswith(f"ID {r['id']}" if r["id"] >= 0 else "no watermark")
     assert any(r["id"] == 1 for r in loose[:2])
+    # --test sign_flip decides by the confidence-weighted p-value (both are in every record).
+    code, out, _ = mnerf("extract", "--run", tiny.wm, *paths, "--threshold", "0.5", "--test", "sign_flip",
+                         "--json")  # fmt: skip
+    flip = [json.loads(line) for line in out.splitlines()]
+    for r, b in zip(flip, loose, strict=True):
+        assert r["test"] == "sign_flip" and b["test"] == "binomial" and r["p_value"] == b["p_value"]
+        assert 0.0 < r["p_value_sign_flip"] <= r["p_corrected_sign_flip"] <= 1.0
+        assert r["id"] == (r["best_id"] if r["p_corrected_sign_flip"] < 0.5 else -1)
 
 
 def test_extract_errors_and_the_decoder_mode(tiny: TinyRuns, id_renders: dict[int, Path], tmp_path: Path,

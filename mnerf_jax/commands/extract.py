@@ -1,5 +1,5 @@
 """``mnerf extract``: decode the watermark bits of image files, or identify their watermark ID with a
-watermarked run's keys and decoder (best-matching key, bit accuracy, binomial p-value)."""
+watermarked run's keys and decoder (best-matching key, bit accuracy, binomial and sign-flip p-values)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Any
 
 NAME = "extract"
 HELP = ("Decode the watermark bits of images with a HiDDeN decoder (default: the shipped 16-bit one), or "
-        "with --run WMRUN identify each image's watermark ID (bit accuracy, binomial p-value).")  # fmt: skip
+        "with --run WMRUN identify each image's watermark ID (bit accuracy, p-values).")  # fmt: skip
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -31,8 +31,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="message length: picks the shipped decoder (16 or 48), or checks --decoder",
     )
     parser.add_argument("--threshold", type=float, default=None, metavar="P",
-                        help="with --run: claim an ID only when its Bonferroni-corrected binomial p-value "
-                             "is below P (default: the run's watermark.id_threshold, 1e-3 unless set)")
+                        help="with --run: claim an ID only when its Bonferroni-corrected p-value is below P "
+                             "(default: the run's watermark.id_threshold, 1e-3 unless set)")
+    parser.add_argument("--test", choices=("binomial", "sign_flip"), default=None,
+                        help="with --run: the p-value that decides: binomial (matching bits) or sign_flip "
+                             "(matching bits weighted by the decoder's confidence); both are printed "
+                             "(default: the run's watermark.id_test, binomial unless set)")
     parser.add_argument("--batch", type=int, default=32, help="images per decoder call (32)")
     parser.add_argument("--json", action="store_true", help="one JSON object per image instead of text")
 
@@ -59,9 +63,11 @@ def identification_line(record: dict[str, Any]) -> str:
     """One record of ``wm_eval.identify_images`` as text: the claimed ID or "no watermark", the best match's
     bit accuracy and its corrected p-value."""
     figures = (f"best ID {record['best_id']}, bit accuracy {record['bit_accuracy']:.2%}, "
-               f"p = {record['p_corrected']:.3g} (uncorrected {record['p_value']:.3g})")  # fmt: skip
+               f"p = {record['p_corrected']:.3g} binomial (uncorrected {record['p_value']:.3g}), "
+               f"{record['p_corrected_sign_flip']:.3g} sign-flip")  # fmt: skip
     if record["id"] < 0:
-        why = "tie between keys" if record["best_id"] < 0 else f"p ≥ {record['threshold']:g}"
+        why = ("tie between keys" if record["best_id"] < 0
+               else f"{record['test'].replace('_', '-')} p ≥ {record['threshold']:g}")  # fmt: skip
         return f"no watermark ({why}; {figures})"
     return f"ID {record['id']}  ({figures})"
 
@@ -74,7 +80,7 @@ def run_identify(args: argparse.Namespace) -> int:
     if args.bits is not None:
         raise MnerfError("--bits applies to --decoder or the shipped decoders, not --run (the run's decoder "
                          "fixes the message length)")  # fmt: skip
-    records = wm_eval.identify_images(args.run, args.images, args.threshold, args.batch)
+    records = wm_eval.identify_images(args.run, args.images, args.threshold, args.batch, args.test)
     if args.json:
         for record in records:
             print(json.dumps({**record, "run": str(args.run)}))
