@@ -15,8 +15,9 @@ and, as one of ``N`` keys was picked, the Bonferroni-corrected ``p_N = min(1, N�
 that *any* key agrees this well by luck (the chosen key agrees at most as well as the best-agreeing one, so
 picking it by soft correlation keeps the bound). The decision rule: report the best-matching ID when
 ``p_N < threshold`` (default :data:`DEFAULT_THRESHOLD` = 1e-3, i.e. at most one false claim per thousand
-unwatermarked images), otherwise "no watermark" (ID −1). A tie between two keys at the best score is
-undecided (−1) too.
+unwatermarked images while the decoder does not know the keys; one fine-tuned with them in phase 2 can claim
+more, which evaluation measures on the clean renders), otherwise "no watermark" (ID −1). A tie between two
+keys at the best score is undecided (−1) too.
 
 The decision may use the sign-flip test instead (``test="sign_flip"``, `significance.py`): the same null
 hypothesis, the agreement weighted by each bit's confidence, so a match wrong only in its most doubtful bits

@@ -34,6 +34,11 @@ def test_equal_weights_give_the_binomial_test(bits: int, weight: int, data: st.D
     observed = weight * (2 * agreeing - bits)
     assert S.sign_flip_tail(np.full(bits, weight), observed) == pytest.approx(
         S.binomial_tail(agreeing, bits), rel=1e-12)  # fmt: skip
+    # Any threshold, reachable or not, and zero weights mixed in (equal weights take a shortcut).
+    small = min(bits, 10)
+    w = np.concatenate([np.full(small, weight), np.zeros(data.draw(st.integers(0, 3)), np.int64)])
+    any_observed = data.draw(st.integers(-weight * small - 3, weight * small + 3))
+    assert S.sign_flip_tail(w, any_observed) == pytest.approx(_enumerated_tail(w, any_observed), abs=1e-15)
 
 
 @settings(max_examples=15, deadline=None)
