@@ -253,10 +253,9 @@ def identify_images(
     from mnerf_jax import run as runs
 
     keys, decoder = wm_run.load_keys_and_decoder(run_dir)
-    if threshold is None:
-        threshold = runs.read_run_config(run_dir).watermark.id_threshold
-    thr = float(threshold)
-    test = significance.check_test(runs.read_run_config(run_dir).watermark.id_test if test is None else test)
+    saved = runs.read_run_config(run_dir).watermark
+    thr = float(saved.id_threshold if threshold is None else threshold)
+    test = significance.check_test(saved.id_test if test is None else test)
     logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, batch_size)
     ident = identify_logits(logits, keys.messages, thr, test)
     return [
