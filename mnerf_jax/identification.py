@@ -81,7 +81,6 @@ class Identification:
     p_corrected: np.ndarray
     p_value_sign_flip: np.ndarray
     p_corrected_sign_flip: np.ndarray
-    decision: np.ndarray
     threshold: float
     test: str
     bits: int
@@ -90,6 +89,10 @@ class Identification:
     @property
     def min_attainable_p(self) -> float:
         return min(1.0, self.num_ids / float(1 << self.bits))
+
+    @property
+    def decision(self) -> np.ndarray:
+        return self.decision_by(self.test)
 
     def decision_by(self, test: str) -> np.ndarray:
         """Decisions ``[B]`` had ``test`` judged the same best matches at the same threshold."""
@@ -155,9 +158,7 @@ def _identification(
     p = significance.binomial_p_values(best, bits)
     p_flip = significance.sign_flip_p_values(logits, logits_to_bits(logits) == messages[best_id])
     p_corr, p_flip_corr = np.minimum(1.0, n_ids * p), np.minimum(1.0, n_ids * p_flip)
-    best_id = np.where(tie, NO_WATERMARK, best_id)
-    decision = np.where(((p_corr if test == "binomial" else p_flip_corr) < threshold) & ~tie, best_id,
-                        NO_WATERMARK)  # fmt: skip
+    best_id = np.where(tie, NO_WATERMARK, best_id)  # a tie is undecided under either test
     return Identification(
         best_id=best_id.astype(np.int64),
         agreement=best.astype(np.int64),
@@ -166,7 +167,6 @@ def _identification(
         p_corrected=p_corr,
         p_value_sign_flip=p_flip,
         p_corrected_sign_flip=p_flip_corr,
-        decision=decision.astype(np.int64),
         threshold=float(threshold),
         test=test,
         bits=int(bits),
