@@ -189,6 +189,12 @@ def identification_summary(
     true = np.asarray(true_ids, np.int64)
     best_ok = ident.best_id == true
     verified_ok = ident.decision == true
+
+    def named_wrong(decision: np.ndarray) -> float:
+        # A render named as another key: the costly error (a licensee accused of another's copy), unlike a
+        # render left as "no watermark".
+        return float(((decision >= 0) & (decision != true)).mean()) if true.size else math.nan
+
     return {
         "identification_accuracy": float(best_ok.mean()) if true.size else math.nan,
         "verified_identification_accuracy": float(verified_ok.mean()) if true.size else math.nan,
@@ -196,6 +202,10 @@ def identification_summary(
         "verified_identification_accuracy_by_test": {
             test: float((ident.decision_by(test) == true).mean()) if true.size else math.nan
             for test in significance.ID_TESTS
+        },
+        "misidentification_rate": named_wrong(ident.decision),
+        "misidentification_rate_by_test": {
+            test: named_wrong(ident.decision_by(test)) for test in significance.ID_TESTS
         },
         "test": ident.test,
         "detection_rate": float((ident.decision >= 0).mean()) if true.size else math.nan,

@@ -30,6 +30,8 @@ SUMMARY_ROWS: tuple[tuple[str, str, str], ...] = (
     ("identification accuracy (best match)", "identification_accuracy", "{:.2%}"),
     ("identification accuracy (binomial p < threshold)", "_verified_binomial", "{:.2%}"),
     ("identification accuracy (sign-flip p < threshold)", "_verified_sign_flip", "{:.2%}"),
+    ("wrong ID named (binomial p < threshold)", "_wrong_binomial", "{:.2%}"),
+    ("wrong ID named (sign-flip p < threshold)", "_wrong_sign_flip", "{:.2%}"),
     ("bit accuracy of clean renders (chance: 50 %)", "clean_bit_accuracy", "{:.2%}"),
     ("false detections on clean renders", "clean_false_detection_rate", "{:.2%}"),
     ("PSNR vs ground truth (dB)", "psnr", "{:.2f}"),
@@ -55,6 +57,9 @@ def summary_rows(eval_result: Mapping[str, Any]) -> list[tuple[str, str]]:
     if by_test is None and "verified_identification_accuracy" in eval_result:
         by_test = {"binomial": eval_result["verified_identification_accuracy"]}
     values.update({f"_verified_{test}": rate for test, rate in (by_test or {}).items()})
+    # Evaluations written before this rate was reported leave these rows out.
+    values.update({f"_wrong_{test}": rate
+                   for test, rate in (eval_result.get("misidentification_rate_by_test") or {}).items()})
     return [(label, _fmt(fmt, values[key])) for label, key, fmt in SUMMARY_ROWS if key in values]
 
 

@@ -87,7 +87,8 @@ def evaluate_watermarked_run(
     ``identification_accuracy`` (best-matching key by soft correlation is the rendered ID;
     ``identification_accuracy_hard``: by agreeing bits), ``verified_identification_accuracy`` (and its p-value
     under ``test``, default the run's ``watermark.id_test``, passes ``threshold``; under each test:
-    ``verified_identification_accuracy_by_test``), ``clean_bit_accuracy``, ``clean_false_detection_rate``
+    ``verified_identification_accuracy_by_test``), ``misidentification_rate`` (named as another ID;
+    ``..._by_test``), ``clean_bit_accuracy``, ``clean_false_detection_rate``
     (``..._by_test``; and per ID, which keys the false detections claimed: ``clean_false_detection_ids [N]``),
     ``num_ids``, ``bits``, ``split``, ``views``, ``per_id`` and ``identification`` (confusion matrices).
     With ``keep_renders`` the returned dict (not the file) also holds ``_renders`` ``{ID: [V, H, W, 3]}``,

@@ -46,6 +46,12 @@ def test_write_report(tmp_path) -> None:
     assert "| bit accuracy, float render (worst ID) | 60.00% |" in text
     assert "![renders](renders.png)" in text and "![bit accuracy](bit_accuracy.png)" in text
     assert "`01010101`" in text
+    # An evaluation written before the wrong-ID rate was reported has no such row; a newer one has both.
+    assert "wrong ID named" not in text
+    rows = dict(report.summary_rows({**_fake_eval(), "misidentification_rate_by_test": {"binomial": 0.01,
+                                                                                       "sign_flip": 0.25}}))
+    assert rows["wrong ID named (binomial p < threshold)"] == "1.00%"
+    assert rows["wrong ID named (sign-flip p < threshold)"] == "25.00%"
     import imageio.v3 as iio
 
     grid = iio.imread(paths["grid"])
