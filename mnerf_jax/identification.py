@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -182,33 +182,38 @@ def confusion_matrix(true_ids: Sequence[int], predicted: Sequence[int], num_ids:
     return out
 
 
+def _fraction(mask: np.ndarray) -> float:
+    """Mean of a boolean array; NaN when it is empty."""
+    return float(mask.mean()) if mask.size else math.nan
+
+
+def _by_test(ident: Identification, rate: Callable[[np.ndarray], float]) -> dict[str, float]:
+    """``rate`` of the decisions each test makes of the same best matches at the same threshold."""
+    return {test: rate(ident.decision_by(test)) for test in significance.ID_TESTS}
+
+
 def identification_summary(
     true_ids: Sequence[int], ident: Identification
 ) -> dict[str, Any]:
     """Identification accuracies and the confusion matrices (best match and decision) as plain data."""
     true = np.asarray(true_ids, np.int64)
-    best_ok = ident.best_id == true
-    verified_ok = ident.decision == true
+
+    def named_right(decision: np.ndarray) -> float:
+        return _fraction(decision == true)
 
     def named_wrong(decision: np.ndarray) -> float:
         # A render named as another key: the costly error (a licensee accused of another's copy), unlike a
         # render left as "no watermark".
-        return float(((decision >= 0) & (decision != true)).mean()) if true.size else math.nan
+        return _fraction((decision >= 0) & (decision != true))
 
     return {
-        "identification_accuracy": float(best_ok.mean()) if true.size else math.nan,
-        "verified_identification_accuracy": float(verified_ok.mean()) if true.size else math.nan,
-        # The same best matches judged by each test at the same threshold (the decision uses ident.test).
-        "verified_identification_accuracy_by_test": {
-            test: float((ident.decision_by(test) == true).mean()) if true.size else math.nan
-            for test in significance.ID_TESTS
-        },
+        "identification_accuracy": _fraction(ident.best_id == true),
+        "verified_identification_accuracy": named_right(ident.decision),  # by ident.test
+        "verified_identification_accuracy_by_test": _by_test(ident, named_right),
         "misidentification_rate": named_wrong(ident.decision),
-        "misidentification_rate_by_test": {
-            test: named_wrong(ident.decision_by(test)) for test in significance.ID_TESTS
-        },
+        "misidentification_rate_by_test": _by_test(ident, named_wrong),
         "test": ident.test,
-        "detection_rate": float((ident.decision >= 0).mean()) if true.size else math.nan,
+        "detection_rate": _fraction(ident.decision >= 0),
         "threshold": ident.threshold,
         "min_attainable_p": ident.min_attainable_p,
         "median_p_corrected": float(np.median(ident.p_corrected)) if true.size else math.nan,
@@ -220,13 +225,13 @@ def identification_summary(
 def false_detection_summary(ident: Identification, num_ids: int = 0) -> dict[str, Any]:
     """How often unwatermarked images are claimed (decision ≠ −1): should be ≤ the threshold; and how many
     were claimed as each of the ``num_ids`` keys (a decoder biased towards some keys claims those)."""
-    claimed = ident.decision[ident.decision >= 0]
+
+    def claimed_rate(decision: np.ndarray) -> float:
+        return _fraction(decision >= 0)
+
     return {
-        "false_detection_rate": float((ident.decision >= 0).mean()) if ident.decision.size else math.nan,
-        "false_detection_rate_by_test": {
-            test: float((ident.decision_by(test) >= 0).mean()) if ident.decision.size else math.nan
-            for test in significance.ID_TESTS
-        },
+        "false_detection_rate": claimed_rate(ident.decision),
+        "false_detection_rate_by_test": _by_test(ident, claimed_rate),
         "mean_best_agreement": float(ident.bit_accuracy.mean()) if ident.decision.size else math.nan,
-        "claimed_per_id": np.bincount(claimed, minlength=num_ids).tolist(),
+        "claimed_per_id": np.bincount(ident.decision[ident.decision >= 0], minlength=num_ids).tolist(),
     }
