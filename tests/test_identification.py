@@ -54,12 +54,17 @@ def test_ties_are_undecided() -> None:
     assert ident.best_id[0] == -1 and ident.decision[0] == -1
 
 
+def _random_keys_and_bits(num_ids: int, bits: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``num_ids`` random keys and 5 random decoded messages, ``bits`` long (uint8)."""
+    rng = np.random.default_rng(seed)
+    keys = rng.integers(0, 2, (num_ids, bits)).astype(np.uint8)
+    return keys, rng.integers(0, 2, (5, bits)).astype(np.uint8)
+
+
 @settings(max_examples=25, deadline=None)
 @given(num_ids=st.integers(1, 6), bits=st.sampled_from([8, 16, 32]), seed=st.integers(0, 10_000))
 def test_best_match_maximises_agreement(num_ids: int, bits: int, seed: int) -> None:
-    rng = np.random.default_rng(seed)
-    keys = rng.integers(0, 2, (num_ids, bits)).astype(np.uint8)
-    decoded = rng.integers(0, 2, (5, bits)).astype(np.uint8)
+    keys, decoded = _random_keys_and_bits(num_ids, bits, seed)
     ident = V.identify(decoded, keys)
     agree = (decoded[:, None] == keys[None]).sum(-1)
     np.testing.assert_array_equal(ident.agreement, agree.max(1))
@@ -84,9 +89,7 @@ def test_false_detections_on_random_bits_stay_below_the_threshold() -> None:
 @given(num_ids=st.integers(1, 6), bits=st.sampled_from([8, 16, 32]), seed=st.integers(0, 10_000))
 def test_soft_identification_of_equal_logits_is_the_hard_one(num_ids: int, bits: int, seed: int) -> None:
     # Logits of equal size carry nothing beyond their signs: the soft match is the agreeing-bits match.
-    rng = np.random.default_rng(seed)
-    keys = rng.integers(0, 2, (num_ids, bits)).astype(np.uint8)
-    decoded = rng.integers(0, 2, (5, bits)).astype(np.uint8)
+    keys, decoded = _random_keys_and_bits(num_ids, bits, seed)
     hard = V.identify(decoded, keys, threshold=0.05)
     soft = V.identify_logits(3.0 * (2.0 * decoded - 1.0), keys, threshold=0.05)
     for field in ("best_id", "agreement", "p_value", "decision"):
@@ -173,9 +176,8 @@ def test_sign_flip_decision_names_matches_wrong_only_in_doubtful_bits() -> None:
 @settings(max_examples=10, deadline=None)
 @given(num_ids=st.integers(1, 6), bits=st.sampled_from([8, 16]), seed=st.integers(0, 10_000))
 def test_hard_decisions_give_both_tests_the_same_p_value(num_ids: int, bits: int, seed: int) -> None:
-    rng = np.random.default_rng(seed)
-    keys = rng.integers(0, 2, (num_ids, bits)).astype(np.uint8)
-    ident = V.identify(rng.integers(0, 2, (5, bits)).astype(np.uint8), keys, test="sign_flip")
+    keys, decoded = _random_keys_and_bits(num_ids, bits, seed)
+    ident = V.identify(decoded, keys, test="sign_flip")
     np.testing.assert_allclose(ident.p_value_sign_flip, ident.p_value, rtol=1e-12)
 
 
