@@ -76,15 +76,24 @@ class Identification:
 
     best_id: np.ndarray
     agreement: np.ndarray
-    bit_accuracy: np.ndarray
     p_value: np.ndarray
-    p_corrected: np.ndarray
     p_value_sign_flip: np.ndarray
-    p_corrected_sign_flip: np.ndarray
     threshold: float
     test: str
     bits: int
     num_ids: int
+
+    @property
+    def bit_accuracy(self) -> np.ndarray:
+        return self.agreement / self.bits
+
+    @property
+    def p_corrected(self) -> np.ndarray:
+        return np.minimum(1.0, self.num_ids * self.p_value)
+
+    @property
+    def p_corrected_sign_flip(self) -> np.ndarray:
+        return np.minimum(1.0, self.num_ids * self.p_value_sign_flip)
 
     @property
     def min_attainable_p(self) -> float:
@@ -155,18 +164,13 @@ def _identification(
     best_id = scores.argmax(axis=1)
     tie = (scores == top[:, None]).sum(axis=1) > 1
     best = np.take_along_axis(agree, best_id[:, None], axis=1)[:, 0]
-    p = significance.binomial_p_values(best, bits)
     p_flip = significance.sign_flip_p_values(logits, logits_to_bits(logits) == messages[best_id])
-    p_corr, p_flip_corr = np.minimum(1.0, n_ids * p), np.minimum(1.0, n_ids * p_flip)
     best_id = np.where(tie, NO_WATERMARK, best_id)  # a tie is undecided under either test
     return Identification(
         best_id=best_id.astype(np.int64),
         agreement=best.astype(np.int64),
-        bit_accuracy=best / bits,
-        p_value=p,
-        p_corrected=p_corr,
+        p_value=significance.binomial_p_values(best, bits),
         p_value_sign_flip=p_flip,
-        p_corrected_sign_flip=p_flip_corr,
         threshold=float(threshold),
         test=test,
         bits=int(bits),
