@@ -153,6 +153,10 @@ class WatermarkConfig:
     # scene itself, and clean renders decode as a key. Demo scene, 30 dB budget, lr_decoder 1e-3: 0.3 took
     # false detections from 4.2 % to none for 98.0 -> 92.3 % bits.
     lambda_clean: float = 0.3
+    # What the clean term reads as unwatermarked: "ground_truth", the training view itself, or
+    # "clean_model", the clean (pre-watermark) model's render of it, made once (the renders evaluation and a
+    # verifier meet; smoother than the photographs, as every render is).
+    clean_negative: str = "ground_truth"
     lr_decay_ratio: float = 0.1
     wavelet: str = "bior4.4"
     checkpoint_every: int = 100

@@ -56,7 +56,7 @@ from mnerf_jax.deferred import patch_layout, tiling_patch_size
 from mnerf_jax.embed_inputs import check_rgb_images, clean_references
 from mnerf_jax.embed_loop import EmbedLoop, EmbedResult, seed_budgets
 from mnerf_jax.wm_run import WM_KIND, EmbedError
-from mnerf_jax.wm_step import EmbedState, make_optimizer, total_steps, uses_fidelity
+from mnerf_jax.wm_step import EmbedState, make_optimizer, total_steps, uses_clean_renders
 
 # The embedding run: sources, config, setting up the loop (embed_loop; the jitted step and its optimiser:
 # wm_step).
@@ -267,7 +267,7 @@ def embed(
         # Committed to the device from the start, as every later step's state is (a step's outputs are): an
         # uncommitted first state is another cache key for jit, so the first step compiled twice.
         state = jax.device_put(state, jax.devices()[0])
-        references = clean_references(source, split, progress) if uses_fidelity(cfg) else None
+        references = clean_references(source, split, progress) if uses_clean_renders(cfg) else None
         loop = EmbedLoop(config, split, keys, layout, geometry, policy, store, out, progress, on_step, vgg,
                          references)  # fmt: skip
         return loop.run(state, stop_at, started)

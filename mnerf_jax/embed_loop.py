@@ -101,7 +101,7 @@ class EmbedLoop:
     progress: bool
     on_step: Callable[[int, dict[str, float]], None] | None
     vgg: Any
-    references: np.ndarray | None = None  # clean renders of the training views (watermark.fidelity_psnr)
+    references: np.ndarray | None = None  # clean renders of the training views (wm_step.uses_clean_renders)
     clock: embed_budget.BudgetClock | None = None  # watermark.time_budget_min, when set
 
     def __post_init__(self) -> None:

@@ -60,6 +60,8 @@ _GRID_VARIANTS = ("multinerf", "no_film", "frozen_geometry", "early")
 _FILM_VARIANTS = ("multinerf", "no_grid", "frozen_geometry", "early")
 # Emb's hidden activation (WatermarkConfig.emb_activation; config.py says what each did).
 EMB_ACTIVATIONS = {"relu": jax.nn.relu, "silu": jax.nn.silu, "tanh": jnp.tanh}
+# What phase 2's clean term reads as unwatermarked (WatermarkConfig.clean_negative).
+CLEAN_NEGATIVES = ("ground_truth", "clean_model")
 # Frequencies of the position encoding that feeds the no_grid variant's MLP.
 POS_FREQS = 6
 POS_HIDDEN = 64
@@ -102,6 +104,9 @@ def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
                              f"{cfg.id_test!r}")  # fmt: skip
     if not cfg.time_budget_min >= 0:
         raise WatermarkError(f"watermark.time_budget_min must be ≥ 0 (0: off), got {cfg.time_budget_min}")
+    if cfg.clean_negative not in CLEAN_NEGATIVES:
+        raise WatermarkError(f"watermark.clean_negative must be one of {', '.join(CLEAN_NEGATIVES)}, got "
+                             f"{cfg.clean_negative!r}")  # fmt: skip
     if cfg.fidelity_psnr < 0 or cfg.lambda_fidelity < 0:
         raise WatermarkError("watermark.fidelity_psnr (dB, 0: off) and watermark.lambda_fidelity must be "
                              f"≥ 0, got {cfg.fidelity_psnr} and {cfg.lambda_fidelity}")  # fmt: skip

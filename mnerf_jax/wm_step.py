@@ -169,6 +169,12 @@ def uses_fidelity(cfg: WatermarkConfig) -> bool:
     return cfg.fidelity_psnr > 0
 
 
+def uses_clean_renders(cfg: WatermarkConfig) -> bool:
+    """True when a step needs the clean model's render of its view: the quality budget is on, or the clean
+    term reads the clean model's renders (``watermark.clean_negative``)."""
+    return uses_fidelity(cfg) or (cfg.lambda_clean > 0 and cfg.clean_negative == "clean_model")
+
+
 def fidelity_loss(
     cfg: WatermarkConfig, renders: jax.Array, reference: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
@@ -256,13 +262,17 @@ def make_image_loss(
     per row of ``message [K, L]``; each term is the mean over the K renders.
     Phase 2: ``augment_per_step`` random augmentations (``key``) → LL2 → decoder → BCE(T) against
     the render's message (:func:`message_loss`), plus (``lambda_clean``) BCE(T) of the equally augmented
-    ``target_image`` against ½.
-    Phase 1: no augmentation, plus the perceptual term against ``target_image``. Both phases, given the clean
-    model's render ``reference [H, W, 3]`` (quality budget on): ``lambda_fidelity ·`` :func:`fidelity_loss`.
+    unwatermarked view against ½: ``target_image``, or the clean model's render ``reference [H, W, 3]``
+    (``clean_negative = "clean_model"``).
+    Phase 1: no augmentation, plus the perceptual term against ``target_image``. Both phases, with the
+    quality budget on: ``lambda_fidelity ·`` :func:`fidelity_loss` against ``reference``.
     ``decoder_state``: the decoder's variables (BatchNorm statistics, pooling); their ``params`` are replaced
     by the argument.
     """
     cfg = spec.wm
+    if uses_clean_renders(cfg) and reference is None:
+        raise ValueError("the quality budget and clean_negative='clean_model' need the clean model's render")
+    negative = reference if cfg.clean_negative == "clean_model" else target_image
 
     def decode(images: jax.Array, dec_params: PyTree) -> jax.Array:
         """Logits ``[B, L]`` of ``images [B, H, W, 3]`` as the decoder sees them (augmented in phase 2: the
@@ -279,7 +289,7 @@ def make_image_loss(
         term, bce = message_loss(cfg, decode, renders, dec_params, message)
         loss = cfg.lambda_message * term
         if spec.phase == 2 and cfg.lambda_clean:
-            clean_logits = decode(target_image[None], dec_params)
+            clean_logits = decode(negative[None], dec_params)
             loss = loss + cfg.lambda_clean * losses.bce_with_logits(clean_logits, 0.5, cfg.bce_temperature)
         perc = jnp.zeros((), jnp.float32)
         if spec.phase == 1 and cfg.lambda_perceptual:
@@ -287,7 +297,7 @@ def make_image_loss(
             perc = perceptual_loss(cfg.perceptual, renders, targets, vgg_params)
             loss = loss + cfg.lambda_perceptual * perc
         aux = {"bce": bce, "perceptual": perc}
-        if reference is not None:
+        if uses_fidelity(cfg):
             aux["fidelity"], aux["mse_clean"] = fidelity_loss(cfg, renders, reference)
             loss = loss + cfg.lambda_fidelity * aux["fidelity"]
         return loss, aux
@@ -314,8 +324,7 @@ def embed_step(
     ``total``: int32 scalar, the steps of the whole schedule (the learning rates decay over it).
 
     batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [K, L]`` (0/1 float), ``id [K]`` int32 (distinct),
-    and with the quality budget on (``watermark.fidelity_psnr``) ``reference [H·W, 3]``: the clean model's
-    render of the view.
+    and where :func:`uses_clean_renders` ``reference [H·W, 3]``: the clean model's render of the view.
     Returns the new state and scalar metrics (loss terms, bit accuracy of the un-augmented renders, PSNR;
     means over the K renders; largest per-patch sample counts).
     """
@@ -355,7 +364,7 @@ def embed_step(
         "density_count": aux["render_stats"]["density_count"],
         "colour_count": aux["render_stats"]["colour_count"],
     }
-    if reference is not None:
+    if uses_fidelity(cfg):
         metrics["fidelity"] = aux["fidelity"]
         metrics["psnr_clean"] = metrics_lib.mse_to_psnr(aux["mse_clean"])
     new_state = state.replace(

@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mnerf_jax import deferred as D
-from mnerf_jax import dwt, raymarch, wm_run
+from mnerf_jax import dwt, raymarch, watermark, wm_run
 from mnerf_jax import embed as E
 from mnerf_jax import embed_inputs as EI
 from mnerf_jax import wm_step as S
@@ -790,6 +790,38 @@ def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
     assert float(jnp.sum((g - g0) * (image - jnp.tile(reference, (1, 1, 2))))) > 0
     g_inside = jax.grad(lambda x: loss_fn(25.0, 2, reference)(x, dec["params"])[0])(image)
     np.testing.assert_allclose(g_inside, g0, rtol=1e-5, atol=1e-9)
+
+
+def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
+    # watermark.clean_negative = "clean_model": phase 2's clean term decodes the clean model's render of the
+    # view instead of the ground-truth view; the rest of the loss is unchanged.
+    from mnerf_jax import decoder
+    from mnerf_jax.config import ModelConfig, WatermarkConfig
+
+    dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
+    reference, target, image = (jax.random.uniform(jax.random.PRNGKey(i), (24, 24, 3)) for i in (1, 2, 3))
+    message = jnp.array([[1, 0, 1, 1, 0, 0, 1, 0]], jnp.float32)
+
+    def loss(negative: str, target_image: jax.Array, ref: jax.Array | None, phase: int = 2) -> float:
+        cfg = WatermarkConfig(augment_per_step=0, lambda_clean=0.5, clean_negative=negative)
+        spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
+                          width=24, density_budget=1, colour_budget=1)  # fmt: skip
+        fn = S.make_image_loss(spec, jax.random.PRNGKey(4), message, target_image, dec, None, ref)
+        return float(fn(image, dec["params"])[0])
+
+    assert S.uses_clean_renders(WatermarkConfig(clean_negative="clean_model"))
+    assert not S.uses_clean_renders(WatermarkConfig(clean_negative="clean_model", lambda_clean=0.0))
+    assert not S.uses_clean_renders(WatermarkConfig())
+    np.testing.assert_allclose(loss("clean_model", target, reference), loss("ground_truth", reference, None),
+                               rtol=1e-6)  # fmt: skip
+    assert abs(loss("clean_model", target, reference) - loss("ground_truth", target, None)) > 1e-6
+    # Phase 1 has no clean term, so the negative does not matter there.
+    phase1 = loss("clean_model", target, reference, 1)
+    np.testing.assert_allclose(phase1, loss("ground_truth", target, None, 1), rtol=1e-6)
+    with pytest.raises(ValueError, match="clean model's render"):
+        loss("clean_model", target, None)
+    with pytest.raises(MnerfError, match="clean_negative"):
+        watermark.check_config(WatermarkConfig(clean_negative="photographs"))
 
 
 def test_clean_references_are_the_clean_models_renders_of_the_training_views(tiny: TinyRuns) -> None:
