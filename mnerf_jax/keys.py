@@ -39,6 +39,9 @@ KEYS_FORMAT = 1
 _DEFAULT_DRAWS_PER_KEY = 4.0
 # Hard cap on candidate draws per key before giving up (expected draws of the default d are ≤ 4 per key).
 _MAX_DRAWS_PER_KEY = 2000
+# Fresh starts after a dead end: keys drawn one after another can leave no room for the next (two 8-bit
+# keys 7 or 8 apart leave no word ≥ 5 from both), however many candidates are drawn.
+_MAX_STARTS = 20
 
 
 class KeysError(MnerfError):
@@ -196,12 +199,15 @@ def generate_keys(
     seed: int = 0,
     decoder_fingerprint: str | None = None,
     max_draws_per_key: int = _MAX_DRAWS_PER_KEY,
+    max_starts: int = _MAX_STARTS,
 ) -> KeySet:
     """Draw ``num_ids`` uniform random ``bits``-bit messages pairwise ≥ ``min_hamming`` apart.
 
     ``min_hamming=0`` picks :func:`default_min_hamming`. Requests beyond the Plotkin / Hamming bounds are
-    rejected before drawing; otherwise each key is redrawn at most ``max_draws_per_key`` times (a clear
-    error after that: lower the distance). Deterministic in ``seed``.
+    rejected before drawing; otherwise each key is redrawn at most ``max_draws_per_key`` times, and a set that
+    runs into a dead end is started afresh, at most ``max_starts`` times in all (a clear error after that:
+    lower the distance). Deterministic in ``seed``; a set found at the first start is the one drawn before
+    fresh starts existed.
     """
     num_ids, bits, min_hamming = int(num_ids), int(bits), int(min_hamming)
     check_sizes(num_ids, bits)
@@ -222,20 +228,34 @@ def generate_keys(
         words = rng.choice(1 << bits, size=num_ids, replace=False)
         messages = ((words[:, None] >> np.arange(bits - 1, -1, -1)) & 1).astype(np.uint8)
         return KeySet(messages, distance, int(seed), decoder_fingerprint)
+    most = 0
+    for _ in range(max(1, int(max_starts))):
+        kept = _draw_greedily(rng, num_ids, bits, distance, max_draws_per_key)
+        if kept.shape[0] == num_ids:
+            return KeySet(kept, distance, int(seed), decoder_fingerprint)
+        most = max(most, kept.shape[0])
+    raise KeysError(
+        f"random draws found only {most} of {num_ids} keys of {bits} bits pairwise {distance} apart "
+        f"({max_draws_per_key} tries for each next key, {max(1, int(max_starts))} fresh starts); lower "
+        f"watermark.min_hamming (default for these sizes: {default_min_hamming(num_ids, bits)})"
+    )
+
+
+def _draw_greedily(
+    rng: np.random.Generator, num_ids: int, bits: int, distance: int, max_draws_per_key: int
+) -> np.ndarray:
+    """Keys ``[n ≤ num_ids, bits]`` drawn one after another, each ≥ ``distance`` from those before; stops
+    short (``n < num_ids``) when ``max_draws_per_key`` candidates in a row fail."""
     kept = np.zeros((0, bits), np.uint8)
-    for i in range(num_ids):
+    for _ in range(num_ids):
         for _ in range(max_draws_per_key):
             candidate = rng.integers(0, 2, size=bits, dtype=np.uint8)
             if kept.shape[0] == 0 or (kept != candidate).sum(-1).min() >= distance:
                 kept = np.concatenate([kept, candidate[None]], axis=0)
                 break
         else:
-            raise KeysError(
-                f"random draws found only {i} of {num_ids} keys of {bits} bits pairwise {distance} apart "
-                f"after {max_draws_per_key} tries for the next one; lower watermark.min_hamming "
-                f"(default for these sizes: {default_min_hamming(num_ids, bits)})"
-            )
-    return KeySet(kept, distance, int(seed), decoder_fingerprint)
+            return kept
+    return kept
 
 
 # ---------------------------------------------------------------------------------------------- files

@@ -113,6 +113,15 @@ def test_impossible_requests_are_refused_up_front(num_ids: int, bits: int, dista
         K.generate_keys(num_ids, bits, distance, 0)
 
 
+def test_a_dead_end_is_drawn_afresh() -> None:
+    # Found by the property test above: the first two 8-bit keys drawn for this seed lie 7 apart, which
+    # leaves no 8-bit word ≥ 5 from both, so the third key can only come from a fresh start.
+    keys = K.generate_keys(3, 8, 0, 1_060_566_409)
+    assert K.min_pairwise_hamming(keys.messages) >= keys.min_hamming == 5
+    with pytest.raises(MnerfError, match="found only 2 of 3"):
+        K.generate_keys(3, 8, 0, 1_060_566_409, max_starts=1)
+
+
 def test_bounded_redraws_fail_clearly() -> None:
     # Feasible by the bounds (A(16, 7) ≤ 36 by Plotkin on (17, 8)) but far beyond what random draws reach.
     assert K.max_codewords(16, 7) >= 30
