@@ -228,15 +228,15 @@ def generate_keys(
         words = rng.choice(1 << bits, size=num_ids, replace=False)
         messages = ((words[:, None] >> np.arange(bits - 1, -1, -1)) & 1).astype(np.uint8)
         return KeySet(messages, distance, int(seed), decoder_fingerprint)
-    most = 0
-    for _ in range(max(1, int(max_starts))):
+    most, starts = 0, max(1, int(max_starts))
+    for _ in range(starts):
         kept = _draw_greedily(rng, num_ids, bits, distance, max_draws_per_key)
         if kept.shape[0] == num_ids:
             return KeySet(kept, distance, int(seed), decoder_fingerprint)
         most = max(most, kept.shape[0])
     raise KeysError(
         f"random draws found only {most} of {num_ids} keys of {bits} bits pairwise {distance} apart "
-        f"({max_draws_per_key} tries for each next key, {max(1, int(max_starts))} fresh starts); lower "
+        f"({max_draws_per_key} tries for each next key, {starts} fresh starts); lower "
         f"watermark.min_hamming (default for these sizes: {default_min_hamming(num_ids, bits)})"
     )
 
