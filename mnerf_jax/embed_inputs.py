@@ -33,8 +33,9 @@ def check_rgb_images(images: np.ndarray, where: str) -> np.ndarray:
 def step_batch(
     split: Any, view: int, messages: np.ndarray, ids: Sequence[int], references: np.ndarray | None = None
 ) -> dict[str, jax.Array]:
-    """One step's inputs: the view's rays and pixels, the ``K`` IDs with their messages ``[K, L]``, and the
-    clean model's render of the view when ``references`` (the quality budget) are given."""
+    """One step's inputs: the view's rays and pixels, the ``K`` IDs with their messages ``[K, L]``, every
+    ID's message ``keys [N, L]``, and the clean model's render of the view when ``references`` (the quality
+    budget) are given."""
     o, d = camera_rays(split.cameras, view)
     batch = {
         "rays_o": jnp.asarray(o),
@@ -42,6 +43,7 @@ def step_batch(
         "target": jnp.asarray(split.images[view].reshape(-1, 3), jnp.float32),
         "message": jnp.asarray(messages[np.asarray(ids)], jnp.float32),
         "id": jnp.asarray(ids, jnp.int32),
+        "keys": jnp.asarray(messages, jnp.float32),
     }
     if references is not None:
         batch["reference"] = jnp.asarray(references[view].reshape(-1, 3), jnp.float32)

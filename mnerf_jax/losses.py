@@ -31,6 +31,25 @@ def bce_with_logits(logits: jax.Array, bits: jax.Array, temperature: float = 10.
     return jnp.mean(jnp.maximum(z, 0.0) - z * b + jnp.log1p(jnp.exp(-jnp.abs(z))))
 
 
+
+def key_cross_entropy(
+    logits: jax.Array, keys: jax.Array, ids: jax.Array, temperature: float = 10.0
+) -> jax.Array:
+    """Mean cross-entropy of naming each render's own key among all N keys.
+
+    ``logits [K, L]`` decoded from K renders, ``keys [N, L]`` (0/1) every ID's message, ``ids [K]`` int
+    each render's ID. With the bits read as independent ``sigmoid(logits · temperature)``, key j's
+    log-likelihood is ``(temperature / 2) · ⟨logits, 2·key_j − 1⟩`` up to a term the same for every key,
+    so this is the cross-entropy of the posterior over keys (uniform prior). Unlike the per-bit BCE its
+    gradient sits on the bits where the render's key differs from the keys it is nearest to, and vanishes
+    once its own key wins by a margin.
+    """
+    z = jnp.asarray(logits, jnp.float32)
+    signs = 2.0 * jnp.asarray(keys, jnp.float32) - 1.0
+    scores = 0.5 * temperature * z @ signs.T  # [K, N]
+    own = jnp.take_along_axis(scores, jnp.asarray(ids, jnp.int32)[:, None], axis=-1)[:, 0]
+    return jnp.mean(jax.nn.logsumexp(scores, axis=-1) - own)
+
 # --- Watson's DCT model ---------------------------------------------------------------------------------
 
 # Watson (1993), "DCT quantization matrices visually optimized for individual images", table 1: base

@@ -96,6 +96,9 @@ def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
     if cfg.phase1_steps < -1 or cfg.phase2_steps < -1:
         raise WatermarkError("watermark.phase1_steps and watermark.phase2_steps must be ≥ 0 (-1: by the "
                              f"number of IDs), got {cfg.phase1_steps} and {cfg.phase2_steps}")  # fmt: skip
+    if not cfg.lambda_key >= 0:
+        raise WatermarkError(f"watermark.lambda_key must be ≥ 0 (0: no key cross-entropy), got "
+                             f"{cfg.lambda_key}")  # fmt: skip
     if not cfg.id_loss_power >= 0:
         raise WatermarkError(f"watermark.id_loss_power must be ≥ 0 (0: every ID's BCE weighted alike), got "
                              f"{cfg.id_loss_power}")  # fmt: skip

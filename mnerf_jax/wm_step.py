@@ -220,31 +220,51 @@ def message_loss(
     renders: jax.Array,
     dec_params: PyTree,
     message: jax.Array,
-) -> tuple[jax.Array, jax.Array]:
-    """``(message term, mean BCE)`` of ``decode(renders [K, H, W, 3], dec_params) -> logits [K, L]`` against
-    ``message [K, L]`` (BCE at ``bce_temperature``).
+    keys: jax.Array | None = None,
+    ids: jax.Array | None = None,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(message term, mean BCE, key term)`` of ``decode(renders [K, H, W, 3], dec_params) -> logits
+    [K, L]`` against ``message [K, L]`` (BCE at ``bce_temperature``).
 
     The term is the mean BCE; with ``id_loss_power`` p > 0 and K > 1 its gradient to the renders is that of
     the mean of the K BCEs weighted by ``BCE_k^p`` (held constant; the renders read worst weigh most), while
     the decoder's stays the plain mean's, and so does the term's value. Weighting the decoder's gradient too
     taught it the weak IDs' keys on barely marked renders: 3.5 % of clean renders were claimed (lego, 16
     IDs, the CPU hour). This costs a second decoder pass.
+
+    The key term (zero unless ``lambda_key`` > 0, which needs every ID's message ``keys [N, L]`` and the
+    renders' ``ids [K]``) is :func:`losses.key_cross_entropy` on the same logits, its gradient to both
+    the renders and the decoder, unweighted.
     """
+    use_key = cfg.lambda_key > 0
+    if use_key and (keys is None or ids is None):
+        raise ValueError("watermark.lambda_key > 0 needs every ID's message (keys) and the renders' ids")
+
+    def key_term(z: jax.Array) -> jax.Array:
+        if not use_key:
+            return jnp.zeros((), jnp.float32)
+        return losses.key_cross_entropy(z, keys, ids, cfg.bce_temperature)
+
     if cfg.id_loss_power <= 0 or renders.shape[0] == 1:
-        bce = losses.bce_with_logits(decode(renders, dec_params), message, cfg.bce_temperature)
-        return bce, bce
+        logits = decode(renders, dec_params)
+        bce = losses.bce_with_logits(logits, message, cfg.bce_temperature)
+        return bce, bce, key_term(logits)
 
     def per_id(z: jax.Array) -> jax.Array:
         return jax.vmap(lambda zk, mk: losses.bce_with_logits(zk, mk, cfg.bce_temperature))(z, message)
 
     # The decoder's gradient and the value through this pass (renders held), the renders' through the next.
-    bce_k = per_id(decode(jax.lax.stop_gradient(renders), dec_params))
+    z_dec = decode(jax.lax.stop_gradient(renders), dec_params)
+    z_field = decode(renders, jax.lax.stop_gradient(dec_params))
+    bce_k = per_id(z_dec)
     weight = jax.lax.stop_gradient(bce_k) ** cfg.id_loss_power
     weight = weight / jnp.maximum(jnp.sum(weight), jnp.finfo(jnp.float32).tiny)
-    field_k = per_id(decode(renders, jax.lax.stop_gradient(dec_params)))
+    field_k = per_id(z_field)
     bce = jnp.mean(bce_k)
     field = jnp.sum(weight * field_k)
-    return bce + field - jax.lax.stop_gradient(field), bce
+    key_field = key_term(z_field)
+    key = key_term(z_dec) + key_field - jax.lax.stop_gradient(key_field)
+    return bce + field - jax.lax.stop_gradient(field), bce, key
 
 
 def make_image_loss(
@@ -255,15 +275,18 @@ def make_image_loss(
     decoder_state: PyTree,
     vgg_params: Any = None,
     reference: jax.Array | None = None,
+    keys: jax.Array | None = None,
+    ids: jax.Array | None = None,
 ) -> Callable[[jax.Array, PyTree], tuple[jax.Array, dict[str, jax.Array]]]:
-    """The image-level loss ``(image [H, W, 3K], decoder params) -> (loss, {"bce", "perceptual"})``.
+    """The image-level loss ``(image [H, W, 3K], decoder params) -> (loss, {"bce", "key", "perceptual"})``.
 
     ``image`` holds the K renders of one view side by side in its channels (:func:`split_renders`), one
     per row of ``message [K, L]``; each term is the mean over the K renders.
     Phase 2: ``augment_per_step`` random augmentations (``key``) → LL2 → decoder → BCE(T) against
-    the render's message (:func:`message_loss`), plus (``lambda_clean``) BCE(T) of the equally augmented
-    unwatermarked view against ½: ``target_image``, or the clean model's render ``reference [H, W, 3]``
-    (``clean_negative = "clean_model"``).
+    the render's message and (``lambda_key``) the key cross-entropy against every ID's message
+    ``keys [N, L]`` given the renders' ``ids [K]`` (:func:`message_loss`), plus (``lambda_clean``) BCE(T) of
+    the equally augmented unwatermarked view against ½: ``target_image``, or the clean model's render
+    ``reference [H, W, 3]`` (``clean_negative = "clean_model"``).
     Phase 1: no augmentation, plus the perceptual term against ``target_image``. Both phases, with the
     quality budget on: ``lambda_fidelity ·`` :func:`fidelity_loss` against ``reference``.
     ``decoder_state``: the decoder's variables (BatchNorm statistics, pooling); their ``params`` are replaced
@@ -286,8 +309,8 @@ def make_image_loss(
 
     def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
         renders = split_renders(image)  # [K, H, W, 3]
-        term, bce = message_loss(cfg, decode, renders, dec_params, message)
-        loss = cfg.lambda_message * term
+        term, bce, key = message_loss(cfg, decode, renders, dec_params, message, keys, ids)
+        loss = cfg.lambda_message * term + cfg.lambda_key * key
         if spec.phase == 2 and cfg.lambda_clean:
             clean_logits = decode(negative[None], dec_params)
             loss = loss + cfg.lambda_clean * losses.bce_with_logits(clean_logits, 0.5, cfg.bce_temperature)
@@ -296,7 +319,7 @@ def make_image_loss(
             targets = jnp.broadcast_to(target_image, renders.shape)
             perc = perceptual_loss(cfg.perceptual, renders, targets, vgg_params)
             loss = loss + cfg.lambda_perceptual * perc
-        aux = {"bce": bce, "perceptual": perc}
+        aux = {"bce": bce, "key": key, "perceptual": perc}
         if uses_fidelity(cfg):
             aux["fidelity"], aux["mse_clean"] = fidelity_loss(cfg, renders, reference)
             loss = loss + cfg.lambda_fidelity * aux["fidelity"]
@@ -324,6 +347,7 @@ def embed_step(
     ``total``: int32 scalar, the steps of the whole schedule (the learning rates decay over it).
 
     batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [K, L]`` (0/1 float), ``id [K]`` int32 (distinct),
+    ``keys [N, L]`` every ID's message (read where ``lambda_key`` > 0),
     and where :func:`uses_clean_renders` ``reference [H·W, 3]``: the clean model's render of the view.
     Returns the new state and scalar metrics (loss terms, bit accuracy of the un-augmented renders, PSNR;
     means over the K renders; largest per-patch sample counts).
@@ -336,7 +360,8 @@ def embed_step(
     target_image = batch["target"].reshape(h, w, 3)
     rays = (batch["rays_o"], batch["rays_d"])
     reference = batch["reference"].reshape(h, w, 3) if "reference" in batch else None
-    image_loss = make_image_loss(spec, k_aug, message, target_image, state.decoder, vgg_params, reference)
+    image_loss = make_image_loss(spec, k_aug, message, target_image, state.decoder, vgg_params, reference,
+                                 batch.get("keys"), batch["id"])  # fmt: skip
     ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
     render_fn = render_patch_fn(spec, geometry, batch["id"])
     loss, aux, image, g_field, g_dec = deferred_grad(
@@ -358,6 +383,7 @@ def embed_step(
         "loss_image": aux["loss_image"],
         "loss_patch": aux["loss_patch"],
         "bce": aux["bce"],
+        "key_ce": aux["key"],
         "perceptual": aux["perceptual"],
         "bit_acc": jnp.mean(((logits > 0).astype(jnp.float32) == message).astype(jnp.float32)),
         "psnr": metrics_lib.mse_to_psnr(jnp.mean(jnp.square(renders - target_image))),

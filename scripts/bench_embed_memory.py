@@ -60,10 +60,11 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     state = wm_step.EmbedState(params=params, decoder=dec_vars,
                              opt_state=tx.init({"field": params, "decoder": dec_vars["params"]}),
                              step=jnp.zeros((), jnp.int32), key=jax.random.fold_in(root, 2))  # fmt: skip
+    keys = jnp.asarray(np.random.default_rng(0).integers(0, 2, (4, 16)), jnp.float32)  # the 4 IDs' messages
     batch = {
         "rays_o": jnp.asarray(rays_o), "rays_d": jnp.asarray(rays_d),
         "target": jnp.full((height * size, 3), 0.5, jnp.float32),
-        "message": jnp.asarray(np.arange(16)[None] % 2, jnp.float32), "id": jnp.asarray([1], jnp.int32),
+        "message": keys[1:2], "id": jnp.asarray([1], jnp.int32), "keys": keys,
     }  # fmt: skip
     geometry = source.geometry
     policy = budgets.BudgetPolicy()
@@ -99,7 +100,8 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
         s = spec()
         fn = wm_step.render_patch_fn(s, geometry, batch["id"])
         target = batch["target"].reshape(height, size, 3)
-        image_loss = wm_step.make_image_loss(s, jax.random.key(4), batch["message"], target, dec_vars)
+        image_loss = wm_step.make_image_loss(s, jax.random.key(4), batch["message"], target, dec_vars,
+                                             keys=batch["keys"], ids=batch["id"])  # fmt: skip
 
         @jax.jit
         def direct(params: dict, dec_params: dict) -> tuple:

@@ -289,7 +289,7 @@ def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_messag
     message = jnp.array([1, 0, 1, 1, 0, 0, 1, 0], jnp.float32)
 
     def loss_fn(lambda_clean: float, phase: int = 2):
-        cfg = WatermarkConfig(augment_per_step=0, lambda_clean=lambda_clean)
+        cfg = WatermarkConfig(augment_per_step=0, lambda_clean=lambda_clean, lambda_key=0.0)
         spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
                           width=24, density_budget=1, colour_budget=1)  # fmt: skip
         return S.make_image_loss(spec, jax.random.PRNGKey(3), message, target, dec)
@@ -655,9 +655,9 @@ def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.M
     dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
     image = jnp.full((16, 16, 3), 0.5)
     for names, expect in (((), None), (("jpeg", "hue"), ("jpeg", "hue"))):
-        spec = S.StepSpec(model=ModelConfig(), wm=WatermarkConfig(augment_names=names), adam_b1=0.9,
-                          adam_b2=0.99, phase=2, height=16, width=16, density_budget=1,
-                          colour_budget=1)  # fmt: skip
+        wm = WatermarkConfig(augment_names=names, lambda_key=0.0)
+        spec = S.StepSpec(model=ModelConfig(), wm=wm, adam_b1=0.9, adam_b2=0.99, phase=2, height=16,
+                          width=16, density_budget=1, colour_budget=1)  # fmt: skip
         loss = S.make_image_loss(spec, jax.random.PRNGKey(1), jnp.zeros(8), image, dec)
         seen.clear()
         jax.eval_shape(loss, image, dec["params"])
@@ -670,7 +670,9 @@ def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
     from mnerf_jax import decoder
     from mnerf_jax.config import WatermarkConfig
 
-    cfg = WatermarkConfig(wm_ranks=(2, 2, 2), augment_per_step=0, jitter=False, lambda_ssim=0.0)
+    # lambda_key = 0: the key cross-entropy depends on the set of IDs, so it is not a mean over them.
+    cfg = WatermarkConfig(wm_ranks=(2, 2, 2), augment_per_step=0, jitter=False, lambda_ssim=0.0,
+                          lambda_key=0.0)  # fmt: skip
     h, w = 10, 9
     model, params, geometry, rays, targets = _small_watermarked_scene(cfg, 4, h, w)
     dec = decoder.init_decoder(jax.random.PRNGKey(3), 8)
@@ -735,9 +737,10 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
     uniform = np.full(4, 0.25)
     g_plain = jax.grad(weighted, argnums=(0, 1))(renders, dec, uniform)
     for power in (0.0, 1.0, 2.0):
-        cfg = WatermarkConfig(id_loss_power=power)
-        term, bce = S.message_loss(cfg, decode, renders, dec, message)
+        cfg = WatermarkConfig(id_loss_power=power, lambda_key=0.0)
+        term, bce, key = S.message_loss(cfg, decode, renders, dec, message)
         np.testing.assert_allclose([term, bce], [per_id.mean()] * 2, rtol=1e-5)
+        assert float(key) == 0.0  # lambda_key = 0: no key term
         g_r, g_p = jax.grad(lambda r, p, c=cfg: S.message_loss(c, decode, r, p, message)[0],
                             argnums=(0, 1))(renders, dec)  # fmt: skip
         w = per_id**power / np.sum(per_id**power)
@@ -747,10 +750,43 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
             worst, best = int(np.argmax(per_id)), int(np.argmin(per_id))
             ratio = np.abs(np.asarray(g_r)).sum((1, 2, 3)) / np.abs(np.asarray(g_plain[0])).sum((1, 2, 3))
             assert ratio[worst] > 1.0 > ratio[best]
-    one, _ = S.message_loss(WatermarkConfig(id_loss_power=2.0), decode, renders[:1], dec, message[:1])
+    cfg = WatermarkConfig(id_loss_power=2.0, lambda_key=0.0)
+    one, _, _ = S.message_loss(cfg, decode, renders[:1], dec, message[:1])
     np.testing.assert_allclose(one, per_id[0], rtol=1e-5)
     with pytest.raises(MnerfError, match="id_loss_power"):
         watermark.check_config(WatermarkConfig(id_loss_power=-1.0))
+
+
+def test_key_term_is_the_key_cross_entropy_with_its_gradient_to_renders_and_decoder() -> None:
+    # watermark.lambda_key: the same logits as the BCE, the gradient of key_cross_entropy(decode(r, p)) to
+    # both sides, with the plain mean and with id_loss_power's two decoder passes alike.
+    from mnerf_jax import losses
+    from mnerf_jax.config import WatermarkConfig
+
+    renders = jax.random.uniform(jax.random.PRNGKey(0), (3, 3, 3, 3))
+    dec = jax.random.normal(jax.random.PRNGKey(1), (27, 8)) * 0.1
+    keys = (jax.random.uniform(jax.random.PRNGKey(2), (5, 8)) > 0.5).astype(jnp.float32)
+    ids = jnp.array([4, 0, 2])
+
+    def decode(r: jax.Array, p: jax.Array) -> jax.Array:
+        return r.reshape(r.shape[0], -1) @ p
+
+    def direct(r: jax.Array, p: jax.Array) -> jax.Array:
+        return losses.key_cross_entropy(decode(r, p), keys, ids)
+
+    g_direct = jax.grad(direct, argnums=(0, 1))(renders, dec)
+    for power in (0.0, 1.0):
+        cfg = WatermarkConfig(id_loss_power=power, lambda_key=0.5)
+        key = S.message_loss(cfg, decode, renders, dec, keys[ids], keys, ids)[2]
+        np.testing.assert_allclose(key, direct(renders, dec), rtol=1e-5)
+        g = jax.grad(lambda r, p, c=cfg: S.message_loss(c, decode, r, p, keys[ids], keys, ids)[2],
+                     argnums=(0, 1))(renders, dec)  # fmt: skip
+        for got, want in zip(g, g_direct, strict=True):
+            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-8)
+    with pytest.raises(ValueError, match="lambda_key"):
+        S.message_loss(WatermarkConfig(lambda_key=0.5), decode, renders, dec, keys[ids])
+    with pytest.raises(MnerfError, match="lambda_key"):
+        watermark.check_config(WatermarkConfig(lambda_key=-1.0))
 
 
 # ------------------------------------------------------------------------------------ quality budget
@@ -769,7 +805,7 @@ def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
     messages = jnp.array([[1, 0, 1, 1, 0, 0, 1, 0], [0, 0, 1, 0, 1, 1, 1, 0]], jnp.float32)
 
     def loss_fn(psnr: float, phase: int, ref: jax.Array | None):
-        cfg = WatermarkConfig(augment_per_step=0, fidelity_psnr=psnr, lambda_fidelity=4.0)
+        cfg = WatermarkConfig(augment_per_step=0, fidelity_psnr=psnr, lambda_fidelity=4.0, lambda_key=0.0)
         spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
                           width=24, density_budget=1, colour_budget=1)  # fmt: skip
         return jax.jit(S.make_image_loss(spec, jax.random.PRNGKey(4), messages, target, dec, None, ref))
@@ -803,7 +839,7 @@ def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
     message = jnp.array([[1, 0, 1, 1, 0, 0, 1, 0]], jnp.float32)
 
     def loss(negative: str, target_image: jax.Array, ref: jax.Array | None, phase: int = 2) -> float:
-        cfg = WatermarkConfig(augment_per_step=0, lambda_clean=0.5, clean_negative=negative)
+        cfg = WatermarkConfig(augment_per_step=0, lambda_clean=0.5, clean_negative=negative, lambda_key=0.0)
         spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
                           width=24, density_budget=1, colour_budget=1)  # fmt: skip
         fn = S.make_image_loss(spec, jax.random.PRNGKey(4), message, target_image, dec, None, ref)

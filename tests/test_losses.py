@@ -34,6 +34,27 @@ def test_bce_matches_numpy_reference():
     )
 
 
+def test_key_cross_entropy_is_the_posterior_over_keys_from_independent_bits():
+    # Key j's log-likelihood Σ_b log σ(T·z_b·s_jb), s = 2·key − 1, normalised over the N keys (uniform prior).
+    rng = np.random.default_rng(1)
+    logits = rng.normal(scale=0.4, size=(5, 12))
+    keys = rng.integers(0, 2, size=(7, 12))
+    ids = np.array([0, 3, 6, 3, 1])
+    signs = 2.0 * keys - 1.0
+    log_lik = -np.logaddexp(0.0, -10.0 * logits[:, None, :] * signs[None]).sum(-1)  # [K, N]
+    log_post = log_lik - np.logaddexp.reduce(log_lik, axis=-1, keepdims=True)
+    expected = -np.mean(log_post[np.arange(5), ids])
+    np.testing.assert_allclose(losses.key_cross_entropy(logits, keys, ids), expected, rtol=1e-5)
+    # Its gradient lies only on the bits where the own key differs from another: equal keys move nothing.
+    same = np.repeat(keys[:1], 7, axis=0)
+    grad = jax.grad(losses.key_cross_entropy)(jnp.asarray(logits), same, ids)
+    np.testing.assert_allclose(grad, 0.0, atol=1e-7)
+    # A render read as its own key with a wide margin costs almost nothing; read as another key, a lot.
+    confident = 0.5 * signs[ids]
+    assert float(losses.key_cross_entropy(confident, keys, ids)) < 1e-3
+    assert float(losses.key_cross_entropy(0.5 * signs[(ids + 1) % 7], keys, ids)) > 5.0
+
+
 def _bce_t1(logits: np.ndarray, bits: np.ndarray) -> float:
     p = 1.0 / (1.0 + np.exp(-logits))
     return float(np.mean(-(bits * np.log(p) + (1 - bits) * np.log(1 - p))))
