@@ -254,7 +254,7 @@ def _draw_greedily(
                 kept = np.concatenate([kept, candidate[None]], axis=0)
                 break
         else:
-            return kept
+            break  # no candidate fits: a dead end
     return kept
 
 

@@ -31,7 +31,6 @@ def bce_with_logits(logits: jax.Array, bits: jax.Array, temperature: float = 10.
     return jnp.mean(jnp.maximum(z, 0.0) - z * b + jnp.log1p(jnp.exp(-jnp.abs(z))))
 
 
-
 def key_cross_entropy(
     logits: jax.Array, keys: jax.Array, ids: jax.Array, temperature: float = 10.0
 ) -> jax.Array:
@@ -49,6 +48,7 @@ def key_cross_entropy(
     scores = 0.5 * temperature * z @ signs.T  # [K, N]
     own = jnp.take_along_axis(scores, jnp.asarray(ids, jnp.int32)[:, None], axis=-1)[:, 0]
     return jnp.mean(jax.nn.logsumexp(scores, axis=-1) - own)
+
 
 # --- Watson's DCT model ---------------------------------------------------------------------------------
 
