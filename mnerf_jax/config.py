@@ -187,10 +187,8 @@ class WatermarkConfig:
     # outside it. The paper's losses alone set no scale for quality: the decoder's gradient on a 64-px view
     # is ~15,000× the patch L1's, so PSNR fell 11 dB on the demo scene whatever lambda_rgb (0.1 or 1.0).
     # A smooth penalty (MSE / MSE_budget)² held renders 9 dB inside a 35 dB budget: under Adam a small but
-    # steady gradient moves parameters as far as a large one. 0: off (the paper). With lambda_key = 0.2, the
-    # lego CPU hour (embed_cpu, seed 1) at 27 / 30 dB: 86.3 / 82.5 % bits, the best match right for 97.3 /
-    # 94.6 %, 29.01 / 30.21 dB; without a budget 93.8 %, 99.75 %, 23.52 dB. Seed 0 at 27 dB: 79.9 %, 94.4 %,
-    # 28.33 dB; without a budget 85.3 %, 22.55 dB (docs/findings.md).
+    # steady gradient moves parameters as far as a large one. 0: off (the paper). Its trade in the lego CPU
+    # hour with lambda_key = 0.2, on two seeds: configs/embed_cpu.toml and docs/findings.md.
     fidelity_psnr: float = 0.0
     lambda_fidelity: float = 10.0
     keep_checkpoints: int = 2
