@@ -19,6 +19,7 @@ COMMAND_MODULES: dict[str, str] = {
     "train-decoder": "mnerf_jax.commands.train_decoder",
     "extract": "mnerf_jax.commands.extract",
     "embed": "mnerf_jax.commands.embed",
+    "compare": "mnerf_jax.commands.compare",
 }
 
 

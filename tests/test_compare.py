@@ -1,0 +1,133 @@
+"""``mnerf compare``: runs grouped by the settings they differ in, seeds summarised, bad runs refused."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from mnerf_jax import cli, compare
+
+BASE_SETTINGS = {"lambda_key": 0.2, "fidelity_psnr": 0.0, "seed": 0, "key_seed": 0, "time_budget_min": 60.0,
+                 "wm_ranks": [8, 8, 8]}  # fmt: skip
+
+
+def write_run(
+    root: Path,
+    name: str,
+    *,
+    bits: float,
+    psnr: float,
+    settings: dict | None = None,
+    source: str = "/runs/lego",
+    kind: str = "multinerf",
+    by_test: bool = True,
+) -> Path:
+    """A watermarked run directory with the files ``compare`` reads (no checkpoint)."""
+    run = root / name
+    run.mkdir()
+    (run / "run.json").write_text(json.dumps({"kind": kind, "source_run": source}))
+    (run / "config.json").write_text(json.dumps({"watermark": {**BASE_SETTINGS, **(settings or {})}}))
+    result = {
+        "bit_accuracy_mean": bits, "bit_accuracy_png_mean": bits - 0.001, "bit_accuracy_min": bits - 0.1,
+        "identification_accuracy": 0.95, "verified_identification_accuracy": 0.3,
+        "misidentification_rate": 0.0, "clean_false_detection_rate": 0.01,
+        "identification": {"test": "binomial"},
+        "psnr": psnr, "clean_psnr": 32.0, "lpips": 0.1, "views": 200, "num_ids": 16, "bits": 16,
+    }  # fmt: skip
+    if by_test:
+        result |= {
+            "verified_identification_accuracy_by_test": {"binomial": 0.3, "sign_flip": 0.5},
+            "misidentification_rate_by_test": {"binomial": 0.0, "sign_flip": 0.02},
+            "clean_false_detection_rate_by_test": {"binomial": 0.01, "sign_flip": 0.03},
+        }
+    (run / "eval-test.json").write_text(json.dumps(result))
+    return run
+
+
+@pytest.fixture()
+def four_runs(tmp_path: Path) -> list[Path]:
+    """Two settings (lambda_key 0.1 / 0.2), two seeds each; one run with another time budget (folded)."""
+    return [
+        write_run(
+            tmp_path, "a0", bits=0.90, psnr=24.0, settings={"lambda_key": 0.1, "seed": 0, "key_seed": 0}
+        ),
+        write_run(tmp_path, "b0", bits=0.80, psnr=22.0, settings={"seed": 0, "key_seed": 0}),
+        write_run(
+            tmp_path,
+            "a1",
+            bits=0.80,
+            psnr=26.0,
+            settings={"lambda_key": 0.1, "seed": 1, "key_seed": 1, "time_budget_min": 0.0},
+        ),  # fmt: skip
+        write_run(tmp_path, "b1", bits=0.94, psnr=23.0, settings={"seed": 1, "key_seed": 1}),
+    ]
+
+
+def test_runs_group_by_the_setting_they_differ_in_and_seeds_fold_together(four_runs: list[Path]) -> None:
+    groups = compare.compare_runs(four_runs)
+    assert [g.label for g in groups] == ["lambda_key=0.1", "lambda_key=0.2"]
+    assert [[r.path.name for r in g.runs] for g in groups] == [["a0", "a1"], ["b0", "b1"]]
+    mean, low, high = groups[0].stats("bits")
+    assert (mean, low, high) == pytest.approx((0.85, 0.80, 0.90))
+    assert groups[1].stats("psnr_drop") == pytest.approx((-9.5, -10.0, -9.0))
+    assert groups[0].stats("named_sign_flip") == pytest.approx((0.5, 0.5, 0.5))
+
+
+def test_a_differing_source_run_splits_a_setting_unless_ignored(tmp_path: Path) -> None:
+    runs = [
+        write_run(tmp_path, "x", bits=0.9, psnr=24.0, source="/runs/fit_a"),
+        write_run(tmp_path, "y", bits=0.8, psnr=24.0, source="/runs/fit_b", settings={"seed": 1}),
+    ]
+    assert [g.label for g in compare.compare_runs(runs)] == [
+        "source_run=/runs/fit_a",
+        "source_run=/runs/fit_b",
+    ]
+    folded = compare.compare_runs(runs, ignore=(*compare.IGNORED_BY_DEFAULT, "source_run"))
+    assert [(g.label, len(g.runs)) for g in folded] == [("all runs", 2)]
+
+
+def test_an_evaluation_without_per_test_rates_keeps_its_own_tests_figure(tmp_path: Path) -> None:
+    run = compare.load_run_figures(write_run(tmp_path, "old", bits=0.9, psnr=24.0, by_test=False))
+    assert run.figures["named_binomial"] == pytest.approx(0.3)
+    assert run.figures["named_sign_flip"] is None
+    assert "—" in compare.runs_table(compare.group_runs([run]))
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda root: root / "absent", "no such run directory"),
+        (lambda root: (root / "plain").mkdir() or root / "plain", "not a mnerf run directory"),
+        (lambda root: write_run(root, "fit", bits=0.5, psnr=30.0, kind="tensorf"), "not a watermarked one"),
+        (
+            lambda root: (
+                (write_run(root, "new", bits=0.9, psnr=24.0) / "eval-test.json").unlink() or root / "new"
+            ),
+            "mnerf evaluate --run",
+        ),  # fmt: skip
+    ],
+)
+def test_a_run_that_cannot_be_compared_is_refused_with_its_reason(tmp_path: Path, make, message: str) -> None:
+    good = write_run(tmp_path, "good", bits=0.9, psnr=24.0)
+    with pytest.raises(compare.CompareError, match=message):
+        compare.compare_runs([good, make(tmp_path)])
+
+
+def test_cli_prints_both_tables_json_and_a_plot(four_runs: list[Path], tmp_path: Path, capsys) -> None:
+    plot = tmp_path / "out" / "tradeoff.png"
+    assert cli.main(["compare", *map(str, four_runs), "--plot", str(plot)]) == 0
+    out = capsys.readouterr().out
+    assert "| lambda_key=0.1 | a0 | 0/0 | 90.0 % |" in out
+    assert "| lambda_key=0.2 | 2 | 87.0 % (80.0 % – 94.0 %) |" in out
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert cli.main(["compare", *map(str, four_runs), "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["groups"][1]["stats"]["bits"] == pytest.approx({"mean": 0.87, "min": 0.80, "max": 0.94})
+
+
+def test_cli_bad_run_is_one_error_line(tmp_path: Path, capsys) -> None:
+    assert cli.main(["compare", str(tmp_path / "absent")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("mnerf: error:")
