@@ -82,6 +82,12 @@ class Group:
         return sum(values) / len(values), min(values), max(values)
 
 
+# Plain JSON reads, not run.read_marker / read_run_config: those import the checkpoint stack (JAX, Orbax),
+# and the config parser checks every field against today's Config, where a comparison needs only the
+# recorded [watermark] values.
+WATERMARK_KIND = "multinerf"  # run.WATERMARK_KIND
+
+
 def _read_json(path: Path, what: str) -> dict[str, Any]:
     try:
         data = json.loads(path.read_text())
@@ -134,7 +140,7 @@ def load_run_figures(run_dir: str | Path, split: str = "test") -> RunFigures:
     if not path.is_dir():
         raise CompareError(f"{path}: no such run directory")
     marker = _read_json(path / "run.json", "not a mnerf run directory")
-    if marker.get("kind") != "multinerf":
+    if marker.get("kind") != WATERMARK_KIND:
         raise CompareError(
             f"{path}: a {marker.get('kind', 'unknown')!r} run, not a watermarked one (mnerf embed)"
         )

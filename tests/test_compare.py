@@ -131,3 +131,9 @@ def test_cli_bad_run_is_one_error_line(tmp_path: Path, capsys) -> None:
     assert cli.main(["compare", str(tmp_path / "absent")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("mnerf: error:")
+
+
+def test_the_watermark_kind_is_the_run_loaders() -> None:
+    from mnerf_jax import run
+
+    assert compare.WATERMARK_KIND == run.WATERMARK_KIND
