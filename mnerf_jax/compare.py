@@ -246,6 +246,10 @@ def summary_table(groups: Sequence[Group]) -> str:
     return "\n".join(lines)
 
 
+def _stats_record(stats: tuple[float, float, float] | None) -> dict[str, float] | None:
+    return None if stats is None else dict(zip(("mean", "min", "max"), stats, strict=True))
+
+
 def to_json(groups: Sequence[Group]) -> dict[str, Any]:
     """Every group with its runs' figures and its (mean, lowest, highest) per figure."""
     return {
@@ -264,14 +268,7 @@ def to_json(groups: Sequence[Group]) -> dict[str, Any]:
                     }
                     for r in g.runs
                 ],  # fmt: skip
-                "stats": {
-                    f: (
-                        None
-                        if g.stats(f) is None
-                        else dict(zip(("mean", "min", "max"), g.stats(f), strict=True))
-                    )
-                    for f, _, _ in FIGURES
-                },  # fmt: skip
+                "stats": {f: _stats_record(g.stats(f)) for f, _, _ in FIGURES},
             }
             for g in groups
         ]
