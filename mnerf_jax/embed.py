@@ -124,6 +124,9 @@ def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequen
         raise EmbedError(f"watermark.augment_names / augment_per_step: {err}") from None
     if cfg.wavelet not in dwt.DEC_LO:
         raise EmbedError(f"unknown watermark.wavelet {cfg.wavelet!r} ({' | '.join(dwt.DEC_LO)})")
+    if cfg.read_window and not 0.0 < cfg.read_window <= 1.0:
+        raise EmbedError(f"watermark.read_window is a fraction of the image's shorter side in (0, 1] "
+                         f"(0: the whole image), got {cfg.read_window}")  # fmt: skip
     if total_steps(config.watermark) < 1:
         raise EmbedError("watermark.phase1_steps + watermark.phase2_steps must be ≥ 1")
     return config

@@ -123,8 +123,13 @@ class EmbedLoop:
         meta = checkpoint_meta(self.config, state, self.geometry, self.keys, self.budgets())
         self.store.save(step, checkpoint_tree(state, self.geometry), meta)
         self.store.wait()
-        dec_meta = decoder_io.save_decoder(self.out / DECODER_FILE, state.decoder, {"embed_step": step},
-                                           wavelet=self.config.watermark.wavelet)  # fmt: skip
+        wm = self.config.watermark
+        dec_meta = decoder_io.save_decoder(
+            self.out / DECODER_FILE,
+            state.decoder,
+            {"embed_step": step, "read_window": wm.read_window, "read_background": wm.read_background},
+            wavelet=wm.wavelet,
+        )
         self.keys = keys_lib.with_fingerprint(self.keys, dec_meta["fingerprint"])
         keys_lib.save_keys(self.out, self.keys)
         runs.write_json_atomic(

@@ -16,15 +16,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from mnerf_jax import decoder as dec
-from mnerf_jax import decoder_io, dwt, xla_cpu
+from mnerf_jax import decoder_io, dwt, read_window, xla_cpu
 from mnerf_jax.errors import MnerfError
 
 PIXEL_BUDGET = 1 << 19  # image pixels per decoder call (chunks of 52 images at 100², 1 at 800²)
 
 
-@xla_cpu.jit_cpu_tuned(static_argnames=("wavelet",))
-def _decode_chunk(variables: Mapping[str, Any], images: jax.Array, wavelet: str) -> jax.Array:
-    return dec.apply_ll2(variables, dwt.ll2(images, wavelet))
+@xla_cpu.jit_cpu_tuned(static_argnames=("wavelet", "window", "background"))
+def _decode_chunk(
+    variables: Mapping[str, Any], images: jax.Array, wavelet: str, window: float, background: float | None
+) -> jax.Array:
+    return dec.apply_ll2(variables, dwt.ll2(read_window.read_window(images, window, background), wavelet))
 
 
 def check_images(images: Any) -> np.ndarray | jax.Array:
@@ -55,12 +57,18 @@ def chunk_size(n: int, height: int, width: int, batch_size: int = 32) -> int:
 
 
 def decode(
-    variables: Mapping[str, Any], images: Any, wavelet: str = "bior4.4", batch_size: int = 32
+    variables: Mapping[str, Any],
+    images: Any,
+    wavelet: str = "bior4.4",
+    batch_size: int = 32,
+    window: float = 0.0,
+    background: float | None = 1.0,
 ) -> jax.Array:
     """Logits of images ``[B, H, W, 3]`` in [0, 1] → ``[B, L]`` (a single ``[H, W, 3]`` → ``[L]``).
 
     Integer images (uint8) are scaled by 1/255. The work is done in chunks of at most ``batch_size`` images
-    and ``PIXEL_BUDGET`` pixels.
+    and ``PIXEL_BUDGET`` pixels. ``window``, ``background``: the decoder reads
+    ``read_window.read_window(images, window, background)`` (a watermarked run's ``watermark.read_window``).
     """
     images = check_images(images)
     single = np.ndim(images) == 3
@@ -77,7 +85,7 @@ def decode(
         part = x[start : start + chunk]
         if part.shape[0] < chunk:  # pad so that every chunk has the compiled shape
             part = jnp.concatenate([part, jnp.zeros((chunk - part.shape[0], *part.shape[1:]), part.dtype)])
-        outs.append(_decode_chunk(variables, part, wavelet)[: min(chunk, n - start)])
+        outs.append(_decode_chunk(variables, part, wavelet, window, background)[: min(chunk, n - start)])
     logits = jnp.concatenate(outs) if len(outs) > 1 else outs[0]
     return logits[0] if single else logits
 
@@ -123,9 +131,15 @@ def load_image(path: str | Path) -> np.ndarray:
 
 
 def decode_paths(
-    variables: Mapping[str, Any], paths: Sequence[str | Path], wavelet: str = "bior4.4", batch_size: int = 32
+    variables: Mapping[str, Any],
+    paths: Sequence[str | Path],
+    wavelet: str = "bior4.4",
+    batch_size: int = 32,
+    window: float = 0.0,
+    background: float | None = 1.0,
 ) -> np.ndarray:
-    """Logits ``[N, L]`` of image files, in the given order; images of one size are decoded together."""
+    """Logits ``[N, L]`` of image files, in the given order; images of one size are decoded together
+    (``window``, ``background``: as :func:`decode`)."""
     images = [load_image(p) for p in paths]
     by_size: dict[tuple[int, int], list[int]] = {}
     for i, image in enumerate(images):
@@ -134,7 +148,7 @@ def decode_paths(
     out = np.zeros((len(images), bits), np.float32)
     for indices in by_size.values():
         batch = np.stack([images[i] for i in indices])
-        out[indices] = np.asarray(decode(variables, batch, wavelet, batch_size))
+        out[indices] = np.asarray(decode(variables, batch, wavelet, batch_size, window, background))
     return out
 
 

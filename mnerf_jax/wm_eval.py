@@ -34,11 +34,14 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
     return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
-def _decode(decoder: Any, images: np.ndarray, batch: int = 16) -> np.ndarray:
-    from mnerf_jax import extract
+def _decode(decoder: Any, wm: Any, images: np.ndarray, batch: int = 16) -> np.ndarray:
+    """Logits ``[B, L]`` of ``images`` as the run's decoder reads them (``wm``: its watermark config, for the
+    read window)."""
+    from mnerf_jax import extract, read_window
 
     images = np.asarray(images, np.float32)
-    return np.asarray(extract.decode(decoder.variables, images, decoder.wavelet, batch))
+    window, background = read_window.of_config(wm)
+    return np.asarray(extract.decode(decoder.variables, images, decoder.wavelet, batch, window, background))
 
 
 def _save_and_reload_png(path: Path, image: np.ndarray) -> np.ndarray:
@@ -134,13 +137,13 @@ def evaluate_watermarked_run(
     png_dir = run_dir / f"eval-{split}"
     per_id, true_ids, decoded, decoded_png, all_renders = [], [], [], [], []
     for n in range(n_ids):
-        logits = _decode(decoder, renders[n])
+        logits = _decode(decoder, run.config.watermark, renders[n])
         if save_pngs:
             reloaded = np.stack([_save_and_reload_png(png_dir / f"id{n}" / f"{name}.png", img)
                                  for name, img in zip(names, renders[n], strict=True)])  # fmt: skip
         else:
             reloaded = np.stack([_to_uint8(img).astype(np.float32) / 255.0 for img in renders[n]])
-        logits_png = _decode(decoder, reloaded)
+        logits_png = _decode(decoder, run.config.watermark, reloaded)
         bits, bits_png = logits_to_bits(logits), logits_to_bits(logits_png)
         ident_n = identify_logits(logits, keys.messages, thr)
         per_id.append({
@@ -194,7 +197,7 @@ def evaluate_watermarked_run(
     if clean is not None:
         vs_clean = _quality(stacked, np.tile(clean, (n_ids, 1, 1, 1)), lpips_net)
         clean_q = _quality(clean, gt, lpips_net)
-        clean_logits = _decode(decoder, clean)
+        clean_logits = _decode(decoder, run.config.watermark, clean)
         clean_bits = logits_to_bits(clean_logits)
         clean_ident = identify_logits(clean_logits, keys.messages, thr, test)
         false_claims = false_detection_summary(clean_ident, n_ids)
@@ -250,14 +253,15 @@ def identify_images(
 
     Only the run's keys, decoder and config are read (not its field checkpoint).
     """
-    from mnerf_jax import extract, wm_run
+    from mnerf_jax import extract, read_window, wm_run
     from mnerf_jax import run as runs
 
     keys, decoder = wm_run.load_keys_and_decoder(run_dir)
     saved = runs.read_run_config(run_dir).watermark
     thr = float(saved.id_threshold if threshold is None else threshold)
     test = significance.check_test(saved.id_test if test is None else test)
-    logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, batch_size)
+    logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, batch_size,
+                                  *read_window.of_config(saved))  # fmt: skip
     ident = identify_logits(logits, keys.messages, thr, test)
     return [
         {

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from mnerf_jax import augment, dwt, losses, raymarch, render, watermark, xla_cpu
+from mnerf_jax import augment, dwt, losses, raymarch, read_window, render, watermark, xla_cpu
 from mnerf_jax import decoder as decoder_lib
 from mnerf_jax import metrics as metrics_lib
 from mnerf_jax.config import ModelConfig, WatermarkConfig
@@ -267,6 +267,12 @@ def message_loss(
     return bce + field - jax.lax.stop_gradient(field), bce, key
 
 
+def windowed(cfg: WatermarkConfig, images: jax.Array) -> jax.Array:
+    """What the decoder reads of images ``[B, H, W, 3]``: the run's read window (``watermark.read_window``;
+    after the augmentations, as a verifier reads an attacked image)."""
+    return read_window.read_window(images, *read_window.of_config(cfg))
+
+
 def make_image_loss(
     spec: StepSpec,
     key: jax.Array,
@@ -305,7 +311,7 @@ def make_image_loss(
             seen = augment.random_policy(key, seen, cfg.augment_strength, k=cfg.augment_per_step,
                                          p=cfg.augment_prob, names=cfg.augment_names or None)  # fmt: skip
         variables = {**decoder_state, "params": dec_params}
-        return decoder_lib.apply_ll2(variables, dwt.ll2(seen, cfg.wavelet))
+        return decoder_lib.apply_ll2(variables, dwt.ll2(windowed(cfg, seen), cfg.wavelet))
 
     def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
         renders = split_renders(image)  # [K, H, W, 3]
@@ -377,7 +383,7 @@ def embed_step(
     new_values = optax.apply_updates(values, updates)
     # Bit accuracy of the renders as they are (no augmentation), with the decoder before this update.
     renders = split_renders(image)
-    logits = decoder_lib.apply_ll2(state.decoder, dwt.ll2(renders, cfg.wavelet))
+    logits = decoder_lib.apply_ll2(state.decoder, dwt.ll2(windowed(cfg, renders), cfg.wavelet))
     metrics = {
         "loss": loss,
         "loss_image": aux["loss_image"],

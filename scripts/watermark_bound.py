@@ -18,7 +18,8 @@ is theirs, and the share identified with a corrected p-value below the decision 
 and under the Low policy (2 augmentations, p = 0.75).
 
     python scripts/watermark_bound.py --data ../shared/data/nerf_synthetic/lego --downscale 8 \
-        --clean-psnr 32.76 --max-drop 0.5 [--psnr 35,38] [--views 200] [--decoder FILE] [--json]
+        --clean-psnr 32.76 --max-drop 0.5 [--psnr 35,38] [--views 200] [--object-only] [--read-window 0.72] \
+        [--decoder FILE] [--json]
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mnerf_jax import augment, decoder_io, identification, informed, keys
+from mnerf_jax import augment, decoder_io, identification, informed, keys, read_window
 from mnerf_jax import decoder as dec
 from mnerf_jax.config import DataConfig
 from mnerf_jax.data import load_scene
@@ -52,12 +53,18 @@ def bound_figures(
     batch: int,
     low_draws: int,
     masks: np.ndarray | None = None,
+    window: float = 0.0,
+    background: float | None = 1.0,
 ) -> dict:
     """Embed ``messages[view mod N]`` into each view at ``psnr`` dB and read it back (none / Low); with
-    ``masks [V, H, W, 1]`` only inside them."""
+    ``masks [V, H, W, 1]`` only inside them; the decoder reads ``read_window(image, window, background)``."""
     n_ids = messages.shape[0]
     ids = np.arange(len(images)) % n_ids
-    read = lambda x: dec.decode_logits(loaded.variables, x, loaded.wavelet)  # noqa: E731
+
+    def read(x: jax.Array) -> jax.Array:
+        seen = read_window.read_window(x, window, background)
+        return dec.decode_logits(loaded.variables, seen, loaded.wavelet)
+
     embed = jax.jit(lambda x, b, m: informed.informed_embed(read, x, b, psnr, iterations, m))
     attacked = jax.jit(lambda key, x: read(jnp.clip(augment.random_policy(key, x, "low", 2, 0.75), 0.0, 1.0)))
     decoded = {"none": [], "low": []}
@@ -112,6 +119,9 @@ def main() -> None:
     parser.add_argument("--object-only", action="store_true",
                         help="confine the residual to the object (pixels not the background colour), where a "
                         "field can change colour without new geometry")  # fmt: skip
+    parser.add_argument("--read-window", type=float, default=0.0, metavar="FRACTION",
+                        help="the decoder reads a window of this fraction of the shorter side, centred on "
+                        "the object (watermark.read_window; 0: the whole image)")  # fmt: skip
     parser.add_argument("--json", action="store_true", help="one JSON line per residual PSNR")
     args = parser.parse_args()
 
@@ -133,7 +143,8 @@ def main() -> None:
     for psnr in targets:
         t0 = time.perf_counter()
         figures = bound_figures(loaded, images, keyset.messages, psnr, args.iterations, args.batch,
-                                args.low_draws, masks)  # fmt: skip
+                                args.low_draws, masks, args.read_window,
+                                1.0 if scene.white_bg else 0.0)  # fmt: skip
         row = {
             "views": len(images),
             "image": list(images.shape[1:3]),
@@ -142,6 +153,7 @@ def main() -> None:
             "num_ids": args.num_ids,
             "iterations": args.iterations,
             "object_only": bool(args.object_only),
+            "read_window": args.read_window,
             "object_fraction": None if masks is None else round(float(masks.mean()), 3),
             **figures,
             "seconds": round(time.perf_counter() - t0, 1),

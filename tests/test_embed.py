@@ -15,8 +15,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mnerf_jax import decoder_io, dwt, raymarch, watermark, wm_run
 from mnerf_jax import deferred as D
-from mnerf_jax import dwt, raymarch, watermark, wm_run
 from mnerf_jax import embed as E
 from mnerf_jax import embed_inputs as EI
 from mnerf_jax import wm_step as S
@@ -397,13 +397,17 @@ def test_embedding_config_records_the_schedule_it_runs(tiny: TinyRuns) -> None:
     assert (wm.phase1_steps, wm.phase2_steps) == (200, 7)
     with pytest.raises(MnerfError, match="must be ≥ 1"):
         E.resolve_config(source, None, ["watermark.phase1_steps=0", "watermark.phase2_steps=0"], 2, 8)
+    with pytest.raises(MnerfError, match="read_window"):
+        E.resolve_config(source, None, ["watermark.read_window=1.5"], 2, 8)
 
 
 def test_resume_continues_exactly(tiny: TinyRuns) -> None:
     # 3 steps, stop, resume to 5  ==  5 steps in one go, across the phase boundary (phase 2 with its random
-    # augmentations). The same 80 steps in all as the tiny run: its compiled steps serve these.
+    # augmentations). The decoder reads a read window (watermark.read_window), which the run's decoder file
+    # records; this costs the steps' compilation (the tiny run reads whole images).
     root = tiny.root
-    overrides = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=78"]
+    overrides = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=78",
+                 "watermark.read_window=0.75", "watermark.read_background=-1"]  # fmt: skip
     args = dict(overrides=overrides, decoder_path=tiny.decoder, progress=False)
     E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=3, **args)
     with pytest.raises(MnerfError, match="--resume"):
@@ -419,6 +423,9 @@ def test_resume_continues_exactly(tiny: TinyRuns) -> None:
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
     assert json.loads((root / "r_split" / "keys.json").read_text())["messages"] == json.loads(
         (root / "r_once" / "keys.json").read_text())["messages"]
+    meta = decoder_io.load_decoder(root / "r_split" / "decoder.npz").metadata
+    assert (meta["read_window"], meta["read_background"]) == (0.75, -1.0)
+    assert a.config.watermark.read_window == 0.75
 
 
 def test_a_time_budget_ends_the_run_early_as_a_prefix_of_the_full_one(tiny: TinyRuns) -> None:

@@ -43,10 +43,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def extract_records(args: argparse.Namespace) -> tuple[list[dict], object]:
     """Decode ``args.images``: one record (path, bits string, logits) per image, and the decoder used."""
-    from mnerf_jax import extract
+    from mnerf_jax import extract, read_window
 
     decoder = extract.resolve_decoder(args.decoder, args.bits)
-    logits = extract.decode_paths(decoder.variables, args.images, decoder.wavelet, args.batch)
+    # A watermarked run's decoder.npz records the run's read window; others read the whole image.
+    logits = extract.decode_paths(decoder.variables, args.images, decoder.wavelet, args.batch,
+                                  *read_window.of_metadata(decoder.metadata))  # fmt: skip
     records = []
     for path, row in zip(args.images, logits, strict=True):
         records.append(

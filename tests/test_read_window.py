@@ -1,0 +1,103 @@
+"""The read window (read_window.py): where it sits, that it follows the object, and what reads through it."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from mnerf_jax import read_window as rw
+from mnerf_jax.errors import MnerfError
+
+SIDE = 48
+
+
+def object_on_white(top: int, left: int, size: int = 12, side: int = SIDE) -> np.ndarray:
+    """A white ``side``² image ``[1, H, W, 3]`` with a dark textured square at (top, left)."""
+    image = np.ones((1, side, side, 3), np.float32)
+    rng = np.random.default_rng(top * 97 + left)
+    image[0, top : top + size, left : left + size] = rng.uniform(0.0, 0.6, (size, size, 3))
+    return image
+
+
+def test_fraction_zero_and_full_side_read_the_whole_image() -> None:
+    x = jnp.asarray(object_on_white(3, 5))
+    assert rw.read_window(x, 0.0) is x
+    assert rw.read_window(x, 1.0) is x  # a square image's full side is the image
+
+
+def test_window_side_and_bad_fractions() -> None:
+    assert rw.window_side(100, 100, 0.72) == 72
+    assert rw.window_side(378, 504, 0.5) == 189  # the shorter side
+    assert rw.window_side(100, 100, 0.01) == 4  # never below 4 px
+    for bad in (-0.5, 1.5):
+        with pytest.raises(MnerfError, match="fraction"):
+            rw.window_side(100, 100, bad)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(top=st.integers(0, SIDE - 12), left=st.integers(0, SIDE - 12))
+def test_the_window_is_centred_on_the_object(top: int, left: int) -> None:
+    """The object's centre sits at the window's centre (within a pixel) wherever the window fits in the
+    image, and the window always holds the whole object."""
+    side = 24
+    origin = np.asarray(rw.window_origin(jnp.asarray(object_on_white(top, left)), side, 1.0))[0]
+    centre = np.array([top + 5.5, left + 5.5])
+    want = np.clip(np.round(centre - (side - 1) / 2), 0, SIDE - side)
+    assert np.all(np.abs(origin - want) <= 1)
+    assert origin[0] <= top and origin[0] + side >= top + 12
+    assert origin[1] <= left and origin[1] + side >= left + 12
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(dy=st.integers(-8, 8), dx=st.integers(-8, 8))
+def test_shifting_the_image_shifts_the_window_with_it(dy: int, dx: int) -> None:
+    """What the decoder reads is unchanged by a shift of the whole image (the window follows the object)."""
+    base = object_on_white(18, 18)
+    shifted = np.roll(base, (dy, dx), axis=(1, 2))  # the rolled-in border is white too
+    a = np.asarray(rw.read_window(jnp.asarray(base), 0.5))
+    b = np.asarray(rw.read_window(jnp.asarray(shifted), 0.5))
+    np.testing.assert_array_equal(a, b)
+
+
+def test_noise_on_the_background_barely_moves_the_window() -> None:
+    """The High policy's noise (σ 0.08), clipped to [0, 1]: one-sided on white, yet the window stays."""
+    clean = object_on_white(6, 30)
+    noisy = np.clip(clean + np.random.default_rng(0).normal(0.0, 0.08, clean.shape), 0.0, 1.0)
+    a = np.asarray(rw.window_origin(jnp.asarray(clean), 24, 1.0))
+    b = np.asarray(rw.window_origin(jnp.asarray(noisy.astype(np.float32)), 24, 1.0))
+    assert np.abs(a - b).max() <= 2
+
+
+def test_no_backdrop_or_no_object_centres_the_window() -> None:
+    blank = jnp.ones((2, SIDE, SIDE, 3))
+    centred = np.array([[12, 12], [12, 12]])
+    np.testing.assert_array_equal(np.asarray(rw.window_origin(blank, 24, 1.0)), centred)
+    x = jnp.asarray(np.concatenate([object_on_white(0, 0), object_on_white(30, 30)]))
+    np.testing.assert_array_equal(np.asarray(rw.window_origin(x, 24, None)), centred)
+    assert rw.background_of(-1.0) is None and rw.background_of(0.0) == 0.0
+
+
+def test_gradient_reaches_exactly_the_window_pixels() -> None:
+    x = jnp.asarray(object_on_white(4, 28))
+    grad = np.asarray(jax.grad(lambda im: jnp.sum(rw.read_window(im, 0.5)))(x))[0, ..., 0]
+    top, left = np.asarray(rw.window_origin(x, 24, 1.0))[0]
+    want = np.zeros((SIDE, SIDE))
+    want[top : top + 24, left : left + 24] = 1.0
+    np.testing.assert_array_equal(grad, want)
+
+
+def test_decode_with_a_window_reads_the_cropped_image(make_decoder, tmp_path) -> None:  # noqa: ANN001
+    from mnerf_jax import decoder_io, extract
+
+    loaded = decoder_io.load_decoder(make_decoder(tmp_path / "d.npz", 8))
+    x = object_on_white(20, 4)
+    top, left = np.asarray(rw.window_origin(jnp.asarray(x), 32, 1.0))[0]
+    windowed = extract.decode(loaded.variables, x, loaded.wavelet, window=32 / SIDE)
+    cropped = extract.decode(loaded.variables, x[:, top : top + 32, left : left + 32], loaded.wavelet)
+    np.testing.assert_allclose(np.asarray(windowed), np.asarray(cropped), atol=1e-5)
+    meta = {"read_window": 0.72, "read_background": -1.0}
+    assert rw.of_metadata(meta) == (0.72, None) and rw.of_metadata({}) == (0.0, 1.0)
