@@ -101,3 +101,25 @@ def test_decode_with_a_window_reads_the_cropped_image(make_decoder, tmp_path) ->
     np.testing.assert_allclose(np.asarray(windowed), np.asarray(cropped), atol=1e-5)
     meta = {"read_window": 0.72, "read_background": -1.0}
     assert rw.of_metadata(meta) == (0.72, None) and rw.of_metadata({}) == (0.0, 1.0)
+
+
+def test_extract_with_a_run_decoder_file_reads_its_recorded_window(make_decoder, tmp_path) -> None:  # noqa: ANN001
+    """`mnerf extract --decoder WMRUN/decoder.npz` reads the window the embedding recorded in the file."""
+    import argparse
+
+    import imageio.v3 as iio
+
+    from mnerf_jax import decoder_io, extract
+    from mnerf_jax.commands import extract as extract_cmd
+
+    plain = decoder_io.load_decoder(make_decoder(tmp_path / "plain.npz", 8))
+    path = tmp_path / "run_decoder.npz"
+    decoder_io.save_decoder(path, plain.variables, {"read_window": 0.5, "read_background": 1.0})
+    image = (object_on_white(30, 2)[0] * 255).astype(np.uint8)
+    iio.imwrite(tmp_path / "view.png", image)
+    args = argparse.Namespace(images=[tmp_path / "view.png"], decoder=path, bits=None, batch=4)
+    records, _ = extract_cmd.extract_records(args)
+    want = extract.decode(plain.variables, image[None], plain.wavelet, window=0.5)[0]
+    np.testing.assert_allclose(records[0]["logits"], np.asarray(want), atol=1e-3)
+    whole = extract.decode(plain.variables, image[None], plain.wavelet)[0]
+    assert not np.allclose(np.asarray(want), np.asarray(whole), atol=1e-3)
