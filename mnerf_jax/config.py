@@ -173,7 +173,8 @@ class WatermarkConfig:
     # paper). For object-centred scenes on an empty backdrop, where the whole view's frame lies on background
     # and the decoders read patterns anchored to the frame. The lego CPU hour (embed_cpu), seeds 0 / 1, at
     # 0.72: 97.3 / 98.6 % bits against 85.3 / 93.8 % with the whole view, the right ID named (binomial) for
-    # 73.1 / 85.8 % against 6.4 / 37.4 %, 1.3 dB less PSNR (docs/findings.md).
+    # 73.1 / 85.8 % against 6.4 / 37.4 %, 1.3 dB less PSNR; with fidelity_psnr = 27 no gain (75.4 % against
+    # 79.9 %, seed 0; docs/findings.md).
     read_window: float = 0.0
     # The backdrop's grey level the window's centring ignores (1: white, NeRF-Synthetic); < 0: centre the
     # window on the image.
