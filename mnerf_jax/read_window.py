@@ -88,7 +88,6 @@ def read_window(images: jax.Array, fraction: float, background: float | None = 1
     return jax.vmap(lambda x, o: jax.lax.dynamic_slice(x, (o[0], o[1], 0), (side, side, 3)))(images, origin)
 
 
-
 def background_of(read_background: float) -> float | None:
     """The config's ``watermark.read_background`` as :func:`read_window` takes it (< 0: None, no backdrop)."""
     return None if read_background < 0 else float(read_background)
