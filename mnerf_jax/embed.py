@@ -46,7 +46,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from mnerf_jax import augment, budgets, decoder_io, dwt, losses, raymarch, watermark, wm_run
+from mnerf_jax import augment, budgets, decoder_io, dwt, losses, raymarch, read_window, watermark, wm_run
 from mnerf_jax import config as config_lib
 from mnerf_jax import keys as keys_lib
 from mnerf_jax import run as runs
@@ -124,9 +124,8 @@ def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequen
         raise EmbedError(f"watermark.augment_names / augment_per_step: {err}") from None
     if cfg.wavelet not in dwt.DEC_LO:
         raise EmbedError(f"unknown watermark.wavelet {cfg.wavelet!r} ({' | '.join(dwt.DEC_LO)})")
-    if cfg.read_window and not 0.0 < cfg.read_window <= 1.0:
-        raise EmbedError(f"watermark.read_window is a fraction of the image's shorter side in (0, 1] "
-                         f"(0: the whole image), got {cfg.read_window}")  # fmt: skip
+    if cfg.read_window:
+        read_window.check_fraction(cfg.read_window, "watermark.read_window")
     if total_steps(config.watermark) < 1:
         raise EmbedError("watermark.phase1_steps + watermark.phase2_steps must be ≥ 1")
     return config

@@ -36,10 +36,16 @@ FOREGROUND_HIGH = 0.2
 SMOOTHING = 4
 
 
+def check_fraction(fraction: float, name: str = "the read window") -> None:
+    """MnerfError unless ``fraction`` is in (0, 1] (``name``: what the message calls the setting)."""
+    if not 0.0 < fraction <= 1.0:
+        raise MnerfError(f"{name} is a fraction of the image's shorter side, in (0, 1] (0: the whole image), "
+                         f"got {fraction}")  # fmt: skip
+
+
 def window_side(height: int, width: int, fraction: float) -> int:
     """The window's side in pixels for an image ``height × width`` (the whole shorter side at fraction 1)."""
-    if not 0.0 < fraction <= 1.0:
-        raise MnerfError(f"the read window is a fraction of the image's shorter side, in (0, 1]: {fraction}")
+    check_fraction(fraction)
     return max(4, min(height, width, round(fraction * min(height, width))))
 
 
