@@ -12,7 +12,8 @@ Figures (fractions in [0, 1] except the dB and LPIPS ones):
 - ``bits``, ``bits_png``, ``bits_worst_id``: mean bit accuracy over IDs on float renders, on 8-bit PNGs, and
   the lowest ID's.
 - ``best_match``: the rendered ID is the best-matching key. ``named_binomial``, ``named_sign_flip``: it is
-  also named (corrected p-value below the run's threshold) by that test. ``wrong_binomial``,
+  also named (corrected p-value below the run's threshold) by that test; ``named_worst_id``: the lowest ID's
+  named rate, by the test the run decides by. ``wrong_binomial``,
   ``wrong_sign_flip``: another ID is named. ``clean_claimed_binomial``, ``clean_claimed_sign_flip``: clean
   renders named as some ID.
 - ``psnr`` (dB against the ground truth), ``psnr_drop`` (dB, the watermarked renders' PSNR less the clean
@@ -43,6 +44,7 @@ FIGURES: tuple[tuple[str, str, str], ...] = (
     ("best_match", "pct", "best match"),
     ("named_binomial", "pct", "named (bin.)"),
     ("named_sign_flip", "pct", "named (s-f)"),
+    ("named_worst_id", "pct", "worst ID named"),
     ("wrong_binomial", "pct", "wrong ID (bin.)"),
     ("clean_claimed_binomial", "pct", "clean claimed (bin.)"),
     ("psnr", "db", "PSNR"),
@@ -109,6 +111,15 @@ def _by_test(result: Mapping[str, Any], key: str, test: str) -> float | None:
     return float(result[key]) if key in result and own_test == test else None
 
 
+def _named_worst_id(result: Mapping[str, Any]) -> float | None:
+    """The lowest per-ID named rate, from the decision confusion matrix ``[N, N + 1]`` (the run's test)."""
+    confusion = (result.get("identification") or {}).get("confusion_decision")
+    if not confusion:
+        return None
+    counts = [(row[i], sum(row)) for i, row in enumerate(confusion) if sum(row)]
+    return min(right / total for right, total in counts) if counts else None
+
+
 def figures_of(result: Mapping[str, Any]) -> dict[str, float | None]:
     """The compared figures of one ``eval-<split>.json`` (module docstring); None for any it lacks."""
 
@@ -124,6 +135,7 @@ def figures_of(result: Mapping[str, Any]) -> dict[str, float | None]:
         "best_match": get("identification_accuracy"),
         "named_binomial": _by_test(result, "verified_identification_accuracy", "binomial"),
         "named_sign_flip": _by_test(result, "verified_identification_accuracy", "sign_flip"),
+        "named_worst_id": _named_worst_id(result),
         "wrong_binomial": _by_test(result, "misidentification_rate", "binomial"),
         "wrong_sign_flip": _by_test(result, "misidentification_rate", "sign_flip"),
         "clean_claimed_binomial": _by_test(result, "clean_false_detection_rate", "binomial"),

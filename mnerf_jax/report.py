@@ -48,6 +48,15 @@ def _fmt(fmt: str, value: Any) -> str:
     return fmt.format(value)
 
 
+def weakest_bit(row: Mapping[str, Any]) -> str:
+    """``"b10 44.0%"``: the bit an ID reads right on the fewest views; "n/a" for older evaluations."""
+    per_bit = row.get("bit_accuracy_per_bit")
+    if not per_bit:
+        return "n/a"
+    i = int(np.argmin(per_bit))
+    return f"b{i} {per_bit[i]:.1%}"
+
+
 def summary_rows(eval_result: Mapping[str, Any]) -> list[tuple[str, str]]:
     """``[(label, formatted value)]`` of the headline figures (missing ones are left out)."""
     values = dict(eval_result)
@@ -72,14 +81,16 @@ def format_table(eval_result: Mapping[str, Any]) -> str:
     if per_id:
         mw = max(7, max(len(str(row.get("message", ""))) for row in per_id))
         lines.append("")
-        header = f"{'ID':>3}  {'message':<{mw}}  {'bit acc':>8}  {'PNG':>8}  {'identified':>10}  {'PSNR':>6}"
+        header = (f"{'ID':>3}  {'message':<{mw}}  {'bit acc':>8}  {'PNG':>8}  {'identified':>10}  "
+                  f"{'named':>8}  {'weakest bit':>11}  {'PSNR':>6}")
         lines.append(header)
         for row in per_id:
             lines.append(
                 f"{row['id']:>3}  {row['message']:<{mw}}  {_fmt('{:.2%}', row.get('bit_accuracy')):>8}  "
                 f"{_fmt('{:.2%}', row.get('bit_accuracy_png')):>8}  "
                 f"{_fmt('{:.2%}', row.get('identification_accuracy')):>10}  "
-                f"{_fmt('{:.2f}', row.get('psnr')):>6}"
+                f"{_fmt('{:.2%}', row.get('verified_identification_accuracy')):>8}  "
+                f"{weakest_bit(row):>11}  {_fmt('{:.2f}', row.get('psnr')):>6}"
             )
     return "\n".join(lines)
 
@@ -105,13 +116,15 @@ def markdown(eval_result: Mapping[str, Any], grid_png: str | None, bars_png: str
         ]
     per_id = eval_result.get("per_id") or []
     if per_id:
-        out += ["", "| ID | message | bit accuracy | 8-bit PNG | identified | PSNR (dB) |",
-                "| --- | --- | --- | --- | --- | --- |"]
+        out += ["", "| ID | message | bit accuracy | 8-bit PNG | identified | named | weakest bit "
+                    "| PSNR (dB) |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
         for row in per_id:
             out.append(
                 f"| {row['id']} | `{row['message']}` | {_fmt('{:.2%}', row.get('bit_accuracy'))} | "
                 f"{_fmt('{:.2%}', row.get('bit_accuracy_png'))} | "
-                f"{_fmt('{:.2%}', row.get('identification_accuracy'))} | {_fmt('{:.2f}', row.get('psnr'))} |"
+                f"{_fmt('{:.2%}', row.get('identification_accuracy'))} | "
+                f"{_fmt('{:.2%}', row.get('verified_identification_accuracy'))} | {weakest_bit(row)} | "
+                f"{_fmt('{:.2f}', row.get('psnr'))} |"
             )
     if grid_png:
         caption = f"Renders of one view per ID (top), |render − clean render| × {RESIDUAL_GAIN:g} (bottom):"

@@ -137,3 +137,10 @@ def test_the_watermark_kind_is_the_run_loaders() -> None:
     from mnerf_jax import run
 
     assert compare.WATERMARK_KIND == run.WATERMARK_KIND
+
+
+def test_worst_id_named_is_the_lowest_diagonal_share_of_the_decision_confusion() -> None:
+    # Rows: rendered ID; columns: named ID, last = no watermark. ID 1 is named for 2 of its 4 renders.
+    result = {"identification": {"confusion_decision": [[4, 0, 0], [1, 2, 1]]}}
+    assert compare.figures_of(result)["named_worst_id"] == pytest.approx(0.5)
+    assert compare.figures_of({"identification": {}})["named_worst_id"] is None

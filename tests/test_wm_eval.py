@@ -60,6 +60,18 @@ def test_write_report(tmp_path) -> None:
     assert bars.ndim == 3
 
 
+def test_per_id_table_names_the_weakest_bit() -> None:
+    result = _fake_eval(num_ids=2, bits=4)
+    per_bit = [1.0, 0.25, 0.5, 1.0]
+    result["per_id"][0] |= {"bit_accuracy_per_bit": per_bit, "verified_identification_accuracy": 0.2}
+    text = report.format_table(result)
+    row0 = next(line for line in text.splitlines() if line.strip().startswith("0 "))
+    assert "b1 25.0%" in row0 and "20.00%" in row0
+    row1 = next(line for line in text.splitlines() if line.strip().startswith("1 "))
+    assert row1.count("n/a") == 2  # an older evaluation: neither figure
+    assert "| b1 25.0% |" in report.markdown(result, None, None)
+
+
 def test_residual_is_amplified_and_clipped() -> None:
     a = np.zeros((2, 2, 3), np.float32)
     b = np.full((2, 2, 3), 0.03, np.float32)
@@ -115,6 +127,13 @@ def test_tiny_run_identifies_its_ids(tiny_eval) -> None:
     assert len(list((runs.wm / "eval-test").glob("id*/*.png"))) == 2 * 6
     # The watermark costs at most a few dB against the ground truth (a random decoder needs large changes).
     assert saved["psnr"] >= saved["clean_psnr"] - 3.0
+    # Per ID: each bit's share of views read right averages to the ID's bit accuracy, and the IDs' named
+    # rates to the run's (every ID renders the same views).
+    for row in saved["per_id"]:
+        assert len(row["bit_accuracy_per_bit"]) == 8
+        assert np.mean(row["bit_accuracy_per_bit"]) == pytest.approx(row["bit_accuracy"])
+    named = [row["verified_identification_accuracy"] for row in saved["per_id"]]
+    assert np.mean(named) == pytest.approx(saved["verified_identification_accuracy"])
 
 
 def test_identify_images_reads_saved_renders(tiny_eval) -> None:
