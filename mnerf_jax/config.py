@@ -171,10 +171,10 @@ class WatermarkConfig:
     # The decoder reads a square window of this fraction of the image's shorter side, centred on the pixels
     # that differ from read_background (read_window.py), instead of the whole image; 0: the whole image (the
     # paper). For object-centred scenes on an empty backdrop, where the whole view's frame lies on background
-    # and the decoders read patterns anchored to the frame. The lego CPU hour (embed_cpu), seeds 0 / 1, at
-    # 0.72: 97.3 / 98.6 % bits against 85.3 / 93.8 % with the whole view, the right ID named (binomial) for
-    # 73.1 / 85.8 % against 6.4 / 37.4 %, 1.3 dB less PSNR; with fidelity_psnr = 27 no gain (75.4 % against
-    # 79.9 %, seed 0; docs/findings.md).
+    # and the decoders read patterns anchored to the frame. The lego CPU hour (100 + 2,000 steps), seeds
+    # 0 / 1 / 2, at 0.72: 98.0 % bits on average against 90.7 % with the whole view, the right ID named
+    # (binomial) for 78.6 % against 28.7 %, 2.1 dB less PSNR; with fidelity_psnr = 27 no gain (75.4 % against
+    # 79.9 %, seed 0). configs/embed_cpu.toml sets it (2,600 steps: 100 % named, seed 0; docs/findings.md).
     read_window: float = 0.0
     # The backdrop's grey level the window's centring ignores (1: white, NeRF-Synthetic); < 0: centre the
     # window on the image.

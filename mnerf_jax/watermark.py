@@ -154,7 +154,7 @@ def ids_per_step_of(cfg: WatermarkConfig, num_ids: int | None = None) -> int:
 # bits after 1,000 steps and 95.1 % after 4,000; the demo scene, 16 IDs, 59.3 % after 1,000 (4 IDs: 94 %).
 # Not fewer to fit a CPU hour: lego, 16 IDs, 2,200 steps (61 min on 2 cores) read 84.9 %, the right ID for
 # 72 % of renders, and 3.5 % of clean renders were named as an ID. The hour is better spent with phase 1 cut
-# to 100 steps (configs/embed_cpu.toml: 100 + 2,000, 91.5 %, the right ID for 90 %, no false detection); the
+# to 100 steps (configs/embed_cpu.toml; 100 + 2,000 read 91.5 %, the right ID for 90 %, none claimed); the
 # GPU figures above were measured with this schedule, so it stays until 100 + 3,200 is measured.
 AUTO_PHASE1_STEPS_PER_ID = 50
 AUTO_PHASE2_STEPS_PER_ID = 200

@@ -188,12 +188,13 @@ def test_the_cpu_preset_moves_steps_from_phase_1_to_phase_2() -> None:
     from mnerf_jax import config
 
     # `mnerf embed --config embed_cpu` reads the preset's [watermark] section only: today's defaults with
-    # a 100 + 2,000 step schedule ended by a 60-minute budget and the field's loss weighted towards the IDs
-    # read worst (the lego protocol on 2 cores).
+    # a 100 + 2,600 step schedule ended by a 60-minute budget, the field's loss weighted towards the IDs
+    # read worst, and the decoder reading a window on the object (the lego protocol on 2 cores).
     cfg = config.load_preset("embed_cpu").watermark
-    assert W.phase_steps(cfg, num_ids=16) == (100, 2000) and cfg.time_budget_min == 60
-    assert cfg.id_loss_power == 1.0
-    plain = dataclasses.replace(cfg, phase1_steps=-1, phase2_steps=-1, time_budget_min=0.0, id_loss_power=0.0)
+    assert W.phase_steps(cfg, num_ids=16) == (100, 2600) and cfg.time_budget_min == 60
+    assert cfg.id_loss_power == 1.0 and cfg.read_window == 0.72 and cfg.read_background == 1.0
+    plain = dataclasses.replace(cfg, phase1_steps=-1, phase2_steps=-1, time_budget_min=0.0, id_loss_power=0.0,
+                                read_window=0.0)  # fmt: skip
     assert plain == WatermarkConfig()
 
 
