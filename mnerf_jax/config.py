@@ -174,7 +174,7 @@ class WatermarkConfig:
     # and the decoders read patterns anchored to the frame. The lego CPU hour (100 + 2,000 steps), seeds
     # 0 / 1 / 2, at 0.72: 98.0 % bits on average against 90.7 % with the whole view, the right ID named
     # (binomial) for 78.6 % against 28.7 %, 2.1 dB less PSNR; with fidelity_psnr = 27 no gain (75.4 % against
-    # 79.9 %, seed 0). configs/embed_cpu.toml sets it (2,600 steps: 100 % named, seed 0; docs/findings.md).
+    # 79.9 %, seed 0). configs/embed_cpu.toml sets it (2,600 steps: 100 % named, seeds 0 / 1; findings.md).
     read_window: float = 0.0
     # The backdrop's grey level the window's centring ignores (1: white, NeRF-Synthetic); < 0: centre the
     # window on the image.
