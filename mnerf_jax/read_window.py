@@ -7,7 +7,8 @@ new geometry. Reading a window centred on the object instead puts the frame the 
 ``scripts/watermark_bound.py --read-window 0.72 --object-only`` on lego's 200 test views at 100², with the key
 held within 0.5 dB of the clean model and confined to the object, reads 91.2 % of the bits (the right key
 the best match for 100 % of views), where the whole view reads 76.2 % (74 %). Through a field (the lego CPU
-hour, two seeds): 98.0 % of the bits against 89.6 %, for 1.3 dB more PSNR (``docs/findings.md``).
+hour, 2,100 steps, three seeds): 98.0 % of the bits against 90.7 %, for 2.1 dB more PSNR; with 2,700 steps
+(``configs/embed_cpu.toml``) 100 % on two seeds (``docs/findings.md``).
 
 The window's side is ``fraction`` of the image's shorter side; its centre is the centroid of the pixels that
 differ from ``background`` (found on a 4×4 box-filtered copy, so that noise attacks do not move it), or the
