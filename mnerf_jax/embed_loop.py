@@ -23,8 +23,19 @@ from mnerf_jax.checkpoint import CheckpointStore, config_fingerprint
 from mnerf_jax.config import Config
 from mnerf_jax.deferred import PatchLayout
 from mnerf_jax.embed_inputs import step_batch, step_choice
+from mnerf_jax.scalar_log import ScalarLog
 from mnerf_jax.wm_run import DECODER_FILE, META_FILE, STATE_VERSION, WM_KIND, EmbedError
-from mnerf_jax.wm_step import EmbedState, StepSpec, embed_step, phase_of, step_config, total_steps
+from mnerf_jax.wm_step import (
+    EmbedState,
+    StepSpec,
+    budget_mse,
+    embed_step,
+    fidelity_budget_db,
+    phase_of,
+    step_config,
+    total_steps,
+    uses_fidelity,
+)
 
 # The sample-buffer site of the embedding's patch renders (budgets.BudgetPolicy).
 BUDGET_SITE = "embed_patch"
@@ -145,6 +156,8 @@ class EmbedLoop:
         cfg = self.config.watermark
         ids, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images), self._ids_per_step)
         batch = step_batch(self.split, view, self._messages, ids, self.references)
+        if uses_fidelity(cfg):  # the budget as data: its ramp (fidelity_budget_db) compiles once
+            batch["fidelity_mse"] = budget_mse(fidelity_budget_db(cfg, step, int(self._total)))
         db, cb = self.budgets()
         spec = StepSpec(model=self.config.model, wm=self._step_cfg, adam_b1=self.config.train.adam_b1,
                         adam_b2=self.config.train.adam_b2, phase=phase, height=self.layout.height,
@@ -175,6 +188,7 @@ class EmbedLoop:
         last: dict[str, float] = {}
         redone = 0
         stopped_by_budget = False
+        log = ScalarLog(self.out)
         try:
             while step < stop:
                 tick = time.perf_counter()
@@ -199,13 +213,16 @@ class EmbedLoop:
                          "psnr": f"{np.mean([r[1] for r in recent]):.2f}"}  # fmt: skip
                 if "psnr_clean" in host:  # against the clean model's render (the quality budget)
                     shown["psnr_clean"] = f"{np.mean([r[2] for r in recent]):.2f}"
+                    shown["budget"] = f"{host['psnr_budget']:.1f}"
                 bar.set_postfix(shown)
+                log.add(step - 1, host, last=step == stop)
                 if self.on_step is not None:
                     self.on_step(step - 1, host)
                 if step % every == 0 or step == stop or step == cfg.phase1_steps:
                     self.save(state)
         finally:
             bar.close()
+            log.close()
         if stopped_by_budget and self.progress:
             tqdm.write(f"embed: the time budget ({cfg.time_budget_min:g} min) ends the run at step {step} of "
                       f"{total}; --resume continues it")  # fmt: skip

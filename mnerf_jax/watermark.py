@@ -113,6 +113,15 @@ def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
     if cfg.fidelity_psnr < 0 or cfg.lambda_fidelity < 0:
         raise WatermarkError("watermark.fidelity_psnr (dB, 0: off) and watermark.lambda_fidelity must be "
                              f"≥ 0, got {cfg.fidelity_psnr} and {cfg.lambda_fidelity}")  # fmt: skip
+    if cfg.fidelity_psnr_start:
+        first, last = cfg.fidelity_ramp
+        if not 0 < cfg.fidelity_psnr_start <= cfg.fidelity_psnr:
+            raise WatermarkError("watermark.fidelity_psnr_start (dB, 0: no ramp) must be > 0 and at most "
+                                 f"watermark.fidelity_psnr, the budget it tightens to; got "
+                                 f"{cfg.fidelity_psnr_start} and {cfg.fidelity_psnr}")  # fmt: skip
+        if not 0 <= first <= last <= 1:
+            raise WatermarkError("watermark.fidelity_ramp is two fractions of the schedule's steps, "
+                                 f"0 ≤ start ≤ end ≤ 1; got {list(cfg.fidelity_ramp)}")  # fmt: skip
 
 
 def uses_ids(cfg: WatermarkConfig) -> bool:

@@ -70,7 +70,7 @@ def total_steps(cfg: WatermarkConfig) -> int:
 # compiled step, so the schedule can be sized after its steps are timed (embed_budget.py).
 _HOST_ONLY_FIELDS = (
     "min_hamming", "key_seed", "checkpoint_every", "seed", "id_threshold", "id_test", "keep_checkpoints",
-    "time_budget_min", "phase1_steps", "phase2_steps",
+    "time_budget_min", "phase1_steps", "phase2_steps", "fidelity_psnr_start", "fidelity_ramp",
 )  # fmt: skip
 
 
@@ -175,14 +175,36 @@ def uses_clean_renders(cfg: WatermarkConfig) -> bool:
     return uses_fidelity(cfg) or (cfg.lambda_clean > 0 and cfg.clean_negative == "clean_model")
 
 
+def fidelity_budget_db(cfg: WatermarkConfig, step: int, total: int) -> float:
+    """The quality budget (dB of PSNR against the clean model's render) at step ``step`` of a ``total``-step
+    schedule: ``fidelity_psnr``, or with ``fidelity_psnr_start`` > 0 that until the fraction
+    ``fidelity_ramp[0]`` of the steps, then linear in dB up to ``fidelity_psnr`` at ``fidelity_ramp[1]``,
+    then ``fidelity_psnr``. Host side: the step receives the budget as data, so the ramp compiles once."""
+    if not cfg.fidelity_psnr_start:
+        return float(cfg.fidelity_psnr)
+    first, last = (float(f) * max(int(total), 1) for f in cfg.fidelity_ramp)
+    if step <= first:
+        return float(cfg.fidelity_psnr_start)
+    if step >= last:
+        return float(cfg.fidelity_psnr)
+    span = cfg.fidelity_psnr - cfg.fidelity_psnr_start
+    return float(cfg.fidelity_psnr_start + span * (step - first) / (last - first))
+
+
+def budget_mse(psnr_db: float | jax.Array) -> jax.Array:
+    """The MSE a PSNR of ``psnr_db`` dB allows (images in [0, 1])."""
+    return jnp.asarray(10.0 ** (-jnp.asarray(psnr_db, jnp.float32) / 10.0), jnp.float32)
+
+
 def fidelity_loss(
-    cfg: WatermarkConfig, renders: jax.Array, reference: jax.Array
+    cfg: WatermarkConfig, renders: jax.Array, reference: jax.Array, budget: jax.Array | None = None
 ) -> tuple[jax.Array, jax.Array]:
     """``(mean over K of relu(MSE_k / MSE_budget − 1), mean MSE)`` of ``renders [K, H, W, 3]`` against the
-    clean model's ``reference [H, W, 3]``; ``MSE_budget = 10^(−fidelity_psnr / 10)``: zero, with no gradient,
-    for renders inside the budget."""
+    clean model's ``reference [H, W, 3]``; ``MSE_budget`` is ``budget`` (a scalar, traced: the ramp's value
+    at this step) or ``10^(−fidelity_psnr / 10)``: zero, with no gradient, for renders inside it."""
     mse = jnp.mean(jnp.square(renders - reference[None]), axis=(1, 2, 3))
-    budget = 10.0 ** (-cfg.fidelity_psnr / 10.0)
+    if budget is None:
+        budget = budget_mse(cfg.fidelity_psnr)
     return jnp.mean(jax.nn.relu(mse / budget - 1.0)), jnp.mean(mse)
 
 
@@ -283,6 +305,7 @@ def make_image_loss(
     reference: jax.Array | None = None,
     keys: jax.Array | None = None,
     ids: jax.Array | None = None,
+    fidelity_budget: jax.Array | None = None,
 ) -> Callable[[jax.Array, PyTree], tuple[jax.Array, dict[str, jax.Array]]]:
     """The image-level loss ``(image [H, W, 3K], decoder params) -> (loss, {"bce", "key", "perceptual"})``.
 
@@ -294,7 +317,8 @@ def make_image_loss(
     the equally augmented unwatermarked view against ½: ``target_image``, or the clean model's render
     ``reference [H, W, 3]`` (``clean_negative = "clean_model"``).
     Phase 1: no augmentation, plus the perceptual term against ``target_image``. Both phases, with the
-    quality budget on: ``lambda_fidelity ·`` :func:`fidelity_loss` against ``reference``.
+    quality budget on: ``lambda_fidelity ·`` :func:`fidelity_loss` against ``reference`` (its MSE budget
+    ``fidelity_budget``, this step's value of the ramp, or the config's constant one).
     ``decoder_state``: the decoder's variables (BatchNorm statistics, pooling); their ``params`` are replaced
     by the argument.
     """
@@ -327,7 +351,7 @@ def make_image_loss(
             loss = loss + cfg.lambda_perceptual * perc
         aux = {"bce": bce, "key": key, "perceptual": perc}
         if uses_fidelity(cfg):
-            aux["fidelity"], aux["mse_clean"] = fidelity_loss(cfg, renders, reference)
+            aux["fidelity"], aux["mse_clean"] = fidelity_loss(cfg, renders, reference, fidelity_budget)
             loss = loss + cfg.lambda_fidelity * aux["fidelity"]
         return loss, aux
 
@@ -354,7 +378,8 @@ def embed_step(
 
     batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [K, L]`` (0/1 float), ``id [K]`` int32 (distinct),
     ``keys [N, L]`` every ID's message (read where ``lambda_key`` > 0),
-    and where :func:`uses_clean_renders` ``reference [H·W, 3]``: the clean model's render of the view.
+    and where :func:`uses_clean_renders` ``reference [H·W, 3]``: the clean model's render of the view;
+    with the quality budget, ``fidelity_mse []``: its MSE budget at this step (:func:`fidelity_budget_db`).
     Returns the new state and scalar metrics (loss terms, bit accuracy of the un-augmented renders, PSNR;
     means over the K renders; largest per-patch sample counts).
     """
@@ -367,7 +392,7 @@ def embed_step(
     rays = (batch["rays_o"], batch["rays_d"])
     reference = batch["reference"].reshape(h, w, 3) if "reference" in batch else None
     image_loss = make_image_loss(spec, k_aug, message, target_image, state.decoder, vgg_params, reference,
-                                 batch.get("keys"), batch["id"])  # fmt: skip
+                                 batch.get("keys"), batch["id"], batch.get("fidelity_mse"))  # fmt: skip
     ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
     render_fn = render_patch_fn(spec, geometry, batch["id"])
     loss, aux, image, g_field, g_dec = deferred_grad(
@@ -399,6 +424,8 @@ def embed_step(
     if uses_fidelity(cfg):
         metrics["fidelity"] = aux["fidelity"]
         metrics["psnr_clean"] = metrics_lib.mse_to_psnr(aux["mse_clean"])
+        if "fidelity_mse" in batch:
+            metrics["psnr_budget"] = metrics_lib.mse_to_psnr(batch["fidelity_mse"])
     new_state = state.replace(
         params=new_values["field"],
         decoder={**state.decoder, "params": new_values["decoder"]},

@@ -361,6 +361,13 @@ def test_tiny_embed_writes_a_complete_watermarked_run(tiny: TinyRuns) -> None:
     assert keys.decoder_fingerprint == saved.fingerprint != start.fingerprint
     loaded = runs.load_run(wm)
     assert loaded.kind == "multinerf" and loaded.step == 80 and loaded.extras["num_ids"] == 2
+    # Training curves: TensorBoard scalars, each the mean of 10 steps, at steps 10, 20, ..., 80.
+    from mnerf_jax.scalar_log import read_scalars
+
+    curves = read_scalars(wm / "tb")
+    assert set(curves) >= {"train/bit_acc", "train/psnr", "train/bce", "train/loss"}
+    assert [step for step, _ in curves["train/bit_acc"]] == list(range(10, 81, 10))
+    assert all(0.0 <= value <= 1.0 for _, value in curves["train/bit_acc"])
 
 
 def test_loaded_run_renders_each_id_differently(tiny: TinyRuns) -> None:
@@ -833,6 +840,87 @@ def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
     assert float(jnp.sum((g - g0) * (image - jnp.tile(reference, (1, 1, 2))))) > 0
     g_inside = jax.grad(lambda x: loss_fn(25.0, 2, reference)(x, dec["params"])[0])(image)
     np.testing.assert_allclose(g_inside, g0, rtol=1e-5, atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    start=st.floats(5.0, 40.0), rise=st.floats(0.0, 20.0), first=st.floats(0.0, 1.0),
+    width=st.floats(0.0, 1.0), total=st.integers(1, 5000),
+)
+def test_fidelity_budget_ramps_linearly_in_db_over_the_schedule(
+    start: float, rise: float, first: float, width: float, total: int
+) -> None:
+    # watermark.fidelity_psnr_start / fidelity_ramp: the start budget until the ramp, linear in dB across it,
+    # the final budget after; never outside [start, final] and never loosening as the steps go on.
+    from mnerf_jax.config import WatermarkConfig
+
+    last = min(first + width, 1.0)
+    cfg = WatermarkConfig(fidelity_psnr=start + rise, fidelity_psnr_start=start, fidelity_ramp=(first, last))
+    watermark.check_config(cfg)
+    budgets = [S.fidelity_budget_db(cfg, step, total) for step in range(0, total + 1, max(total // 97, 1))]
+    assert all(b1 <= b2 + 1e-9 for b1, b2 in zip(budgets, budgets[1:], strict=False))
+    assert all(start - 1e-9 <= b <= start + rise + 1e-9 for b in budgets)
+    assert S.fidelity_budget_db(cfg, int(np.floor(first * total)), total) == start
+    after = int(np.ceil(last * total))
+    if after > first * total:
+        assert S.fidelity_budget_db(cfg, after, total) == start + rise
+    if last - first > 0.2 and total >= 100:
+        middle = int(round((first + last) / 2 * total))
+        expected = start + rise * (middle - first * total) / ((last - first) * total)
+        assert abs(S.fidelity_budget_db(cfg, middle, total) - expected) < 1e-6
+    plain = WatermarkConfig(fidelity_psnr=start)  # no ramp: the one budget throughout
+    assert {S.fidelity_budget_db(plain, step, total) for step in (0, total // 2, total)} == {start}
+
+
+def test_fidelity_ramp_is_checked() -> None:
+    from mnerf_jax.config import WatermarkConfig
+
+    with pytest.raises(MnerfError, match="fidelity_psnr_start"):
+        watermark.check_config(WatermarkConfig(fidelity_psnr=30.0, fidelity_psnr_start=35.0))
+    with pytest.raises(MnerfError, match="fidelity_psnr_start"):
+        watermark.check_config(WatermarkConfig(fidelity_psnr_start=20.0))  # no budget to tighten to
+    with pytest.raises(MnerfError, match="fidelity_ramp"):
+        watermark.check_config(WatermarkConfig(fidelity_psnr=30.0, fidelity_psnr_start=20.0,
+                                               fidelity_ramp=(0.8, 0.4)))  # fmt: skip
+    with pytest.raises(MnerfError, match="fidelity_ramp"):
+        watermark.check_config(WatermarkConfig(fidelity_psnr=30.0, fidelity_psnr_start=20.0,
+                                               fidelity_ramp=(0.5, 1.5)))  # fmt: skip
+
+
+def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> None:
+    # The ramp hands each step its MSE budget in the batch (no recompilation per value): a loss built with
+    # fidelity_budget = budget_mse(35) equals one whose config says 35 dB, whatever the config says then.
+    from mnerf_jax import decoder
+    from mnerf_jax.config import ModelConfig, WatermarkConfig
+
+    dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
+    reference, target = (jax.random.uniform(jax.random.PRNGKey(i), (24, 24, 3)) for i in (1, 2))
+    image = reference + 0.03 * jax.random.normal(jax.random.PRNGKey(3), (24, 24, 3))
+    message = jnp.array([[1, 0, 1, 1, 0, 0, 1, 0]], jnp.float32)
+
+    def loss(psnr: float, budget: jax.Array | None) -> jax.Array:
+        cfg = WatermarkConfig(augment_per_step=0, fidelity_psnr=psnr, lambda_key=0.0)
+        spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=2, height=24,
+                          width=24, density_budget=1, colour_budget=1)  # fmt: skip
+        fn = S.make_image_loss(spec, jax.random.PRNGKey(4), message, target, dec, None, reference, None, None,
+                               budget)  # fmt: skip
+        return fn(image, dec["params"])[0]
+
+    np.testing.assert_allclose(loss(20.0, S.budget_mse(35.0)), loss(35.0, None), rtol=1e-6)
+    assert float(loss(35.0, None)) > float(loss(20.0, None)) + 1e-3  # the budget binds at 35 dB, not at 20
+
+
+def test_embedding_steps_receive_the_ramps_budget(tiny: TinyRuns) -> None:
+    # The host loop hands step s the ramp's budget at s (the step reports it back as psnr_budget).
+    root = tiny.root
+    overrides = [*tiny.embed_overrides, "watermark.phase1_steps=1", "watermark.phase2_steps=3",
+                 "watermark.fidelity_psnr=30", "watermark.fidelity_psnr_start=10",
+                 "watermark.fidelity_ramp=0.25,0.75"]  # fmt: skip
+    seen: dict[int, float] = {}
+    E.embed(tiny.fit, root / "ramp", 2, 8, overrides=overrides, decoder_path=tiny.decoder, progress=False,
+            on_step=lambda step, metrics: seen.__setitem__(step, metrics["psnr_budget"]))  # fmt: skip
+    assert sorted(seen) == [0, 1, 2, 3]
+    np.testing.assert_allclose([seen[s] for s in range(4)], [10.0, 10.0, 20.0, 30.0], atol=1e-3)
 
 
 def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
