@@ -18,6 +18,7 @@ from tqdm.auto import tqdm
 
 from mnerf_jax import budgets, decoder_io, embed_budget, grids, raymarch, watermark, wm_run
 from mnerf_jax import keys as keys_lib
+from mnerf_jax import metrics as metrics_lib
 from mnerf_jax import run as runs
 from mnerf_jax.checkpoint import CheckpointStore, config_fingerprint
 from mnerf_jax.config import Config
@@ -28,7 +29,6 @@ from mnerf_jax.wm_run import DECODER_FILE, META_FILE, STATE_VERSION, WM_KIND, Em
 from mnerf_jax.wm_step import (
     EmbedState,
     StepSpec,
-    budget_mse,
     embed_step,
     fidelity_budget_db,
     phase_of,
@@ -121,7 +121,8 @@ class EmbedLoop:
         self._messages = self.keys.messages.astype(np.float32)
         self._index, self._owner = jnp.asarray(self.layout.index), jnp.asarray(self.layout.owner)
         self._step_cfg = step_config(cfg)
-        self._total = jnp.asarray(total_steps(cfg), jnp.int32)
+        self._total_steps = total_steps(cfg)
+        self._total = jnp.asarray(self._total_steps, jnp.int32)
         self._ids_per_step = watermark.ids_per_step_of(cfg, self.keys.num_ids)
 
     def budgets(self) -> tuple[int, int]:
@@ -157,7 +158,8 @@ class EmbedLoop:
         ids, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images), self._ids_per_step)
         batch = step_batch(self.split, view, self._messages, ids, self.references)
         if uses_fidelity(cfg):  # the budget as data: its ramp (fidelity_budget_db) compiles once
-            batch["fidelity_mse"] = budget_mse(fidelity_budget_db(cfg, step, int(self._total)))
+            budget = metrics_lib.psnr_to_mse(fidelity_budget_db(cfg, step, self._total_steps))
+            batch["fidelity_mse"] = np.float32(budget)
         db, cb = self.budgets()
         spec = StepSpec(model=self.config.model, wm=self._step_cfg, adam_b1=self.config.train.adam_b1,
                         adam_b2=self.config.train.adam_b2, phase=phase, height=self.layout.height,

@@ -33,6 +33,11 @@ def mse_to_psnr(mse: jax.Array | float) -> jax.Array:
     return jnp.minimum(-10.0 * jnp.log10(jnp.maximum(mse, 1e-30)), MAX_PSNR)
 
 
+def psnr_to_mse(psnr_db: float) -> float:
+    """The mean squared error over [0, 1] images that a PSNR of ``psnr_db`` dB allows (host side, a float)."""
+    return 10.0 ** (-float(psnr_db) / 10.0)
+
+
 @jax.jit
 def psnr(pred: jax.Array, target: jax.Array) -> jax.Array:
     """Per-image PSNR in dB: ``[..., H, W, 3] x2 -> [...]``, capped at ``MAX_PSNR``."""

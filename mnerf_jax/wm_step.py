@@ -191,11 +191,6 @@ def fidelity_budget_db(cfg: WatermarkConfig, step: int, total: int) -> float:
     return float(cfg.fidelity_psnr_start + span * (step - first) / (last - first))
 
 
-def budget_mse(psnr_db: float | jax.Array) -> jax.Array:
-    """The MSE a PSNR of ``psnr_db`` dB allows (images in [0, 1])."""
-    return jnp.asarray(10.0 ** (-jnp.asarray(psnr_db, jnp.float32) / 10.0), jnp.float32)
-
-
 def fidelity_loss(
     cfg: WatermarkConfig, renders: jax.Array, reference: jax.Array, budget: jax.Array | None = None
 ) -> tuple[jax.Array, jax.Array]:
@@ -204,7 +199,7 @@ def fidelity_loss(
     at this step) or ``10^(−fidelity_psnr / 10)``: zero, with no gradient, for renders inside it."""
     mse = jnp.mean(jnp.square(renders - reference[None]), axis=(1, 2, 3))
     if budget is None:
-        budget = budget_mse(cfg.fidelity_psnr)
+        budget = metrics_lib.psnr_to_mse(cfg.fidelity_psnr)
     return jnp.mean(jax.nn.relu(mse / budget - 1.0)), jnp.mean(mse)
 
 

@@ -889,7 +889,7 @@ def test_fidelity_ramp_is_checked() -> None:
 
 def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> None:
     # The ramp hands each step its MSE budget in the batch (no recompilation per value): a loss built with
-    # fidelity_budget = budget_mse(35) equals one whose config says 35 dB, whatever the config says then.
+    # fidelity_budget = the MSE of 35 dB equals one whose config says 35 dB, whatever the config says then.
     from mnerf_jax import decoder
     from mnerf_jax.config import ModelConfig, WatermarkConfig
 
@@ -906,7 +906,7 @@ def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> Non
                                budget)  # fmt: skip
         return fn(image, dec["params"])[0]
 
-    np.testing.assert_allclose(loss(20.0, S.budget_mse(35.0)), loss(35.0, None), rtol=1e-6)
+    np.testing.assert_allclose(loss(20.0, np.float32(10 ** -3.5)), loss(35.0, None), rtol=1e-6)
     assert float(loss(35.0, None)) > float(loss(20.0, None)) + 1e-3  # the budget binds at 35 dB, not at 20
 
 
