@@ -16,6 +16,7 @@ COMMAND_MODULES: dict[str, str] = {
     "fit": "mnerf_jax.commands.fit",
     "render": "mnerf_jax.commands.render",
     "evaluate": "mnerf_jax.commands.evaluate",
+    "attack": "mnerf_jax.commands.attack",
     "train-decoder": "mnerf_jax.commands.train_decoder",
     "extract": "mnerf_jax.commands.extract",
     "embed": "mnerf_jax.commands.embed",

@@ -164,3 +164,50 @@ def test_report_from_a_real_evaluation(tiny_eval, tmp_path) -> None:
                                 result["_clean"][0])  # fmt: skip
     text = paths["markdown"].read_text()
     assert f"{result['bit_accuracy_mean']:.2%}" in text and paths["grid"].is_file()
+
+
+# --------------------------------------------------------------------------------------------- attacks
+
+
+def test_attack_scores_count_bits_and_names() -> None:
+    from mnerf_jax import wm_attacks
+
+    messages = np.array([[1, 0, 1, 1, 0, 0, 1, 0], [0, 1, 1, 0, 1, 0, 0, 1]], np.float32)
+    logits = np.where(messages[:, None] > 0.5, 3.0, -3.0).repeat(4, axis=1)  # [2 IDs, 4 views, 8 bits]
+    logits[1, :, 0] *= -1.0  # ID 1 reads its first bit wrong on every view
+    s = wm_attacks.score(logits, messages, threshold=0.5, test="binomial")
+    assert s["bit_accuracy_per_id"] == pytest.approx([1.0, 7 / 8])
+    assert s["bit_accuracy_mean"] == pytest.approx(15 / 16) and s["bit_accuracy_min"] == pytest.approx(7 / 8)
+    assert s["identification_accuracy"] == 1.0
+
+
+def test_attacks_on_the_saved_renders(tiny_eval, mnerf) -> None:
+    from mnerf_jax import wm_attacks
+
+    runs, _ = tiny_eval
+    saved = json.loads((runs.wm / "eval-test.json").read_text())
+    result = wm_attacks.evaluate_attacks(runs.wm, "test", "high", ["box_blur", "gaussian_noise"])
+    assert list(result["attacks"]) == ["none", "box_blur", "gaussian_noise"]
+    assert result["views"] == saved["views"] and result["num_ids"] == 2 and result["bits"] == 8
+    # No attack is the evaluation's own PNG figure (the same files, decoded again; at most one bit of 96).
+    assert result["attacks"]["none"]["bit_accuracy_mean"] == pytest.approx(saved["bit_accuracy_png_mean"],
+                                                                           abs=1 / 96)  # fmt: skip
+    for s in result["attacks"].values():
+        assert 0.0 <= s["bit_accuracy_min"] <= s["bit_accuracy_mean"] <= 1.0
+        assert 0.0 <= s["verified_identification_accuracy"] <= s["identification_accuracy"] <= 1.0
+    # The attacks' random parameters come from the seed: the same seed scores the same.
+    again = wm_attacks.evaluate_attacks(runs.wm, "test", "high", ["gaussian_noise"])
+    assert again["attacks"]["gaussian_noise"] == result["attacks"]["gaussian_noise"]
+    assert json.loads((runs.wm / "eval-test-attacks.json").read_text())["strength"] == "high"
+    # The command line: a table with one row per attack, the plot beside the JSON.
+    code, out, _ = mnerf("attack", "--run", runs.wm, "--attacks", "jpeg", "--views", "2", "--quiet")
+    assert code == 0 and "jpeg" in out and "mean of attacks" in out
+    assert (runs.wm / "eval-test-attacks.png").is_file()
+    assert json.loads((runs.wm / "eval-test-attacks.json").read_text())["views"] == 2
+
+
+def test_attacks_need_an_evaluation(tiny, mnerf) -> None:
+    code, _, err = mnerf("attack", "--run", tiny.wm, "--split", "val", "--quiet")
+    assert code == 2 and "mnerf evaluate" in err and "eval-val.json" in err
+    code, _, err = mnerf("attack", "--run", tiny.wm, "--attacks", "sepia", "--quiet")
+    assert code == 2 and "sepia" in err

@@ -1,0 +1,40 @@
+"""Bit accuracy per attack of several watermarked runs side by side, from each run's
+``WMRUN/eval-<split>-attacks.json`` (written by ``mnerf attack``).
+
+    python scripts/plot_attacks.py WMRUN [WMRUN ...] --out attacks.png [--labels A,B] [--split test]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> int:
+    from mnerf_jax.wm_attacks import attacks_plot
+
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("runs", nargs="+", type=Path, metavar="WMRUN")
+    parser.add_argument("--out", type=Path, required=True, help="PNG to write")
+    parser.add_argument("--labels", default=None, help="comma-separated labels, one per run")
+    parser.add_argument("--split", default="test", help="the evaluated split (default test)")
+    args = parser.parse_args(argv)
+    labels = args.labels.split(",") if args.labels else [run.name for run in args.runs]
+    if len(labels) != len(args.runs):
+        parser.error(f"--labels names {len(labels)} runs, {len(args.runs)} given")
+    results = {}
+    for run, label in zip(args.runs, labels, strict=True):
+        path = run / f"eval-{args.split}-attacks.json"
+        if not path.is_file():
+            parser.error(f"{path} not found: run `mnerf attack --run {run} --split {args.split}` first")
+        results[label] = json.loads(path.read_text())
+    print(attacks_plot(args.out, results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
