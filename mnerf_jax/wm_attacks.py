@@ -71,10 +71,10 @@ def attack(name: str, key: Any, images: np.ndarray, strength: str) -> np.ndarray
 def score(logits: np.ndarray, messages: np.ndarray, threshold: float, test: str) -> dict[str, Any]:
     """Scores of attacked renders' ``logits [N, V, L]`` (ID n's renders in row n) against the keys
     ``messages [N, L]``: mean and worst-ID bit accuracy, best match right, named right."""
-    from mnerf_jax.identification import identify_logits
+    from mnerf_jax.identification import bit_accuracy, identify_logits, logits_to_bits
 
     n, v, bits = logits.shape
-    per_id = ((logits > 0) == (messages[:, None] > 0.5)).mean(axis=(1, 2))
+    per_id = bit_accuracy(logits_to_bits(logits), messages[:, None]).mean(axis=1)
     ident = identify_logits(logits.reshape(n * v, bits), messages, threshold, test)
     truth = np.repeat(np.arange(n), v)
     return {
@@ -108,7 +108,7 @@ def evaluate_attacks(
     """
     import jax
 
-    from mnerf_jax import augment, extract, read_window, significance, wm_run
+    from mnerf_jax import augment, significance, wm_eval, wm_run
     from mnerf_jax import run as runs
 
     run_dir = Path(run_dir)
@@ -124,7 +124,6 @@ def evaluate_attacks(
     if renders.shape[0] != messages.shape[0]:
         raise MnerfError(f"{run_dir}'s evaluation has {renders.shape[0]} IDs but its keys.json "
                          f"{messages.shape[0]}")  # fmt: skip
-    window, background = read_window.of_config(saved)
     n, v = renders.shape[:2]
     base = jax.random.PRNGKey(seed)
     order = [NO_ATTACK, *names]
@@ -141,9 +140,8 @@ def evaluate_attacks(
             key = jax.random.fold_in(base, place)
             # One ID at a time: the median filter's window stack is k² times the batch.
             attacked = np.concatenate([attack(name, key, renders[k], strength) for k in range(n)])
-            attacked = (np.clip(attacked, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)  # saved again as 8 bits
-            logits = np.asarray(extract.decode(decoder.variables, attacked, decoder.wavelet, 32, window,
-                                               background))  # fmt: skip
+            attacked = wm_eval.to_uint8(attacked) / np.float32(255.0)  # a verifier gets 8 bits
+            logits = wm_eval.decode_renders(decoder, saved, attacked, batch=32)
             scores[name] = score(logits.reshape(n, v, -1), messages, threshold, test)
             if bar is not None:
                 bar.update(1)

@@ -30,11 +30,12 @@ IDS_PER_RENDER = 16
 # ------------------------------------------------------------------------------------------- evaluation
 
 
-def _to_uint8(image: np.ndarray) -> np.ndarray:
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """Float images in [0, 1] as 8-bit values, rounded (what a saved PNG holds)."""
     return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
-def _decode(decoder: Any, wm: Any, images: np.ndarray, batch: int = 16) -> np.ndarray:
+def decode_renders(decoder: Any, wm: Any, images: np.ndarray, batch: int = 16) -> np.ndarray:
     """Logits ``[B, L]`` of ``images`` as the run's decoder reads them (``wm``: its watermark config, for the
     read window)."""
     from mnerf_jax import extract, read_window
@@ -51,7 +52,7 @@ def _save_and_reload_png(path: Path, image: np.ndarray) -> np.ndarray:
     from mnerf_jax import extract
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, _to_uint8(image))
+    iio.imwrite(path, to_uint8(image))
     return extract.load_image(path)
 
 
@@ -137,13 +138,13 @@ def evaluate_watermarked_run(
     png_dir = run_dir / f"eval-{split}"
     per_id, true_ids, decoded, decoded_png, all_renders = [], [], [], [], []
     for n in range(n_ids):
-        logits = _decode(decoder, run.config.watermark, renders[n])
+        logits = decode_renders(decoder, run.config.watermark, renders[n])
         if save_pngs:
             reloaded = np.stack([_save_and_reload_png(png_dir / f"id{n}" / f"{name}.png", img)
                                  for name, img in zip(names, renders[n], strict=True)])  # fmt: skip
         else:
-            reloaded = np.stack([_to_uint8(img).astype(np.float32) / 255.0 for img in renders[n]])
-        logits_png = _decode(decoder, run.config.watermark, reloaded)
+            reloaded = np.stack([to_uint8(img).astype(np.float32) / 255.0 for img in renders[n]])
+        logits_png = decode_renders(decoder, run.config.watermark, reloaded)
         bits, bits_png = logits_to_bits(logits), logits_to_bits(logits_png)
         ident_n = identify_logits(logits, keys.messages, thr)
         per_id.append({
@@ -202,7 +203,7 @@ def evaluate_watermarked_run(
     if clean is not None:
         vs_clean = _quality(stacked, np.tile(clean, (n_ids, 1, 1, 1)), lpips_net)
         clean_q = _quality(clean, gt, lpips_net)
-        clean_logits = _decode(decoder, run.config.watermark, clean)
+        clean_logits = decode_renders(decoder, run.config.watermark, clean)
         clean_bits = logits_to_bits(clean_logits)
         clean_ident = identify_logits(clean_logits, keys.messages, thr, test)
         false_claims = false_detection_summary(clean_ident, n_ids)
