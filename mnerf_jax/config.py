@@ -214,7 +214,9 @@ class WatermarkConfig:
     # the key be written, and the ramp then shrinks it while the decoder, learning with it, follows.
     # The lego CPU hour (embed_cpu, seed 0), from 20 dB over 0.45-0.75 / 0.6-0.8 of the steps to 40 / 40.5 dB:
     # -0.51 / -0.48 dB against the clean model (the 0.5 dB) at 73.0 / 72.1 % bits, where the preset
-    # without a budget reads 100 % at -11.8 dB (docs/findings.md). 0: no ramp, fidelity_psnr from the start.
+    # without a budget reads 100 % at -11.8 dB (docs/findings.md). Ramped over 0.35-0.6 to 41.2 dB with no
+    # attacks (configs/embed_cpu_quality.toml): -0.47 dB at 77.2 % bits, the best match right for 85.1 %.
+    # 0: no ramp, fidelity_psnr from the start.
     fidelity_psnr_start: float = 0.0
     fidelity_ramp: tuple[float, float] = (0.0, 0.0)
     keep_checkpoints: int = 2
