@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from mnerf_jax.data.images import round_to_8bit
 from mnerf_jax.errors import MnerfError
 
 NO_ATTACK = "none"
@@ -140,7 +141,7 @@ def evaluate_attacks(
             key = jax.random.fold_in(base, place)
             # One ID at a time: the median filter's window stack is k² times the batch.
             attacked = np.concatenate([attack(name, key, renders[k], strength) for k in range(n)])
-            attacked = wm_eval.to_uint8(attacked) / np.float32(255.0)  # a verifier gets 8 bits
+            attacked = round_to_8bit(attacked)  # a verifier gets 8 bits
             logits = wm_eval.decode_renders(decoder, saved, attacked, batch=32)
             scores[name] = score(logits.reshape(n, v, -1), messages, threshold, test)
             if bar is not None:

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from mnerf_jax import significance
+from mnerf_jax.data.images import round_to_8bit, to_uint8
 from mnerf_jax.identification import (
     bit_accuracy,
     false_detection_summary,
@@ -28,11 +29,6 @@ IDS_PER_RENDER = 16
 
 
 # ------------------------------------------------------------------------------------------- evaluation
-
-
-def to_uint8(image: np.ndarray) -> np.ndarray:
-    """Float images in [0, 1] as 8-bit values, rounded (what a saved PNG holds)."""
-    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
 def decode_renders(decoder: Any, wm: Any, images: np.ndarray, batch: int = 16) -> np.ndarray:
@@ -143,7 +139,7 @@ def evaluate_watermarked_run(
             reloaded = np.stack([_save_and_reload_png(png_dir / f"id{n}" / f"{name}.png", img)
                                  for name, img in zip(names, renders[n], strict=True)])  # fmt: skip
         else:
-            reloaded = np.stack([to_uint8(img).astype(np.float32) / 255.0 for img in renders[n]])
+            reloaded = round_to_8bit(np.asarray(renders[n]))
         logits_png = decode_renders(decoder, run.config.watermark, reloaded)
         bits, bits_png = logits_to_bits(logits), logits_to_bits(logits_png)
         ident_n = identify_logits(logits, keys.messages, thr)

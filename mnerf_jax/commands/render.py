@@ -33,11 +33,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def to_uint8(image: np.ndarray) -> np.ndarray:
-    """``[H, W, 3]`` float in [0, 1] -> uint8 (rounded)."""
-    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
 def check_targets(out: Path, names: list[str], overwrite: bool) -> None:
     """Refuse (MnerfError, nothing written) to write into a run directory or over existing files."""
     from mnerf_jax import run as runs
@@ -81,6 +76,7 @@ def render_to(run: Any, split_name: str, out: Path, *, data: Path | None = None,
 
     from mnerf_jax import run as runs
     from mnerf_jax.data import camera_path
+    from mnerf_jax.data.images import to_uint8
 
     if split_name == "path":
         scene = run.load_scene(data, splits=("train",))

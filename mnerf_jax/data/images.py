@@ -84,6 +84,16 @@ def _to_float(im: Image.Image) -> np.ndarray:
     return np.asarray(im, np.float32) * np.float32(1.0 / 255.0)
 
 
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """Float images ``[..., H, W, 3]`` in [0, 1] as 8-bit values, rounded (what a saved PNG holds)."""
+    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def round_to_8bit(image: np.ndarray) -> np.ndarray:
+    """Float images rounded to the 256 levels of an 8-bit file, float32 in [0, 1] again."""
+    return to_uint8(image).astype(np.float32) / np.float32(255.0)
+
+
 def composite(image: np.ndarray, white_bg: bool) -> np.ndarray:
     """[H, W, 3|4] straight-alpha image -> [H, W, 3] composited on white (or black)."""
     if image.shape[-1] == 3:
