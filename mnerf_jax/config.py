@@ -117,6 +117,10 @@ class WatermarkConfig:
     # -1: by the number of IDs, 50 + 200 per ID, at least 200 + 800 (watermark.phase_steps).
     phase1_steps: int = -1
     phase2_steps: int = -1
+    # Phase 2's patch side (deferred back-propagation; peak memory follows it). At or above the view's side
+    # one patch covers the view and the step renders once, on the graph, instead of a graph-free render and
+    # the patches again: lego 1/8 (100 px), 16 IDs, 0.80 s a step against 1.08 s at 64, peak RSS 15.2 GB
+    # against 4.9 GB (configs/embed_cpu_quality.toml spends that memory on 1,300 more steps in the hour).
     patch_size: int = 64
     lambda_message: float = 0.95
     lambda_perceptual: float = 0.05
@@ -215,7 +219,8 @@ class WatermarkConfig:
     # The lego CPU hour (embed_cpu, seed 0), from 20 dB over 0.45-0.75 / 0.6-0.8 of the steps to 40 / 40.5 dB:
     # -0.51 / -0.48 dB against the clean model (the issue's 0.5 dB) at 73.0 / 72.1 % bits, where the preset
     # without a budget reads 100 % at -11.8 dB (docs/findings.md). Ramped over 0.35-0.6 to 41.2 dB with no
-    # attacks (configs/embed_cpu_quality.toml): -0.47 dB at 77.2 % bits, the best match right for 85.1 %.
+    # attacks: -0.47 dB at 77.2 % bits, the best match right for 85.1 %; the same over 4,000 steps with one
+    # patch per view (configs/embed_cpu_quality.toml, 52 min): -0.48 dB at 90.4 %, the best match 95.7 %.
     # 0: no ramp, fidelity_psnr from the start.
     fidelity_psnr_start: float = 0.0
     fidelity_ramp: tuple[float, float] = (0.0, 0.0)

@@ -198,21 +198,26 @@ def test_the_cpu_preset_moves_steps_from_phase_1_to_phase_2() -> None:
     assert plain == WatermarkConfig()
 
 
-def test_the_cpu_quality_preset_is_the_cpu_preset_under_a_tightening_budget_without_attacks() -> None:
+def test_the_cpu_quality_preset_is_the_cpu_preset_with_one_patch_more_steps_a_ramp_no_attacks() -> None:
     from mnerf_jax import config
+    from mnerf_jax.deferred import patch_layout
     from mnerf_jax.wm_step import fidelity_budget_db
 
     cfg = config.load_preset("embed_cpu_quality").watermark
     base = config.load_preset("embed_cpu").watermark
     assert dataclasses.replace(
-        cfg, fidelity_psnr=0.0, fidelity_psnr_start=0.0, fidelity_ramp=(0.0, 0.0), augment_prob=0.75
-    ) == base
+        cfg, fidelity_psnr=0.0, fidelity_psnr_start=0.0, fidelity_ramp=(0.0, 0.0), augment_prob=0.75,
+        patch_size=64, phase2_steps=2600,
+    ) == base  # fmt: skip
     assert cfg.augment_prob == 0.0
-    # 20 dB until 35 % of the 2,700 steps, 41.2 dB from 60 % on.
+    # One patch covers a lego 1/8 view (100 px): the deferred path's single-render branch.
+    assert patch_layout(100, 100, cfg.patch_size).num_patches == 1
+    # 20 dB until 35 % of the 4,000 steps, 41.2 dB from 60 % on.
     total = sum(W.phase_steps(cfg, num_ids=16))
-    budget = [float(fidelity_budget_db(cfg, step, total)) for step in (0, 945, 1620, 2699)]
+    assert total == 4000
+    budget = [float(fidelity_budget_db(cfg, step, total)) for step in (0, 1400, 2400, 3999)]
     assert budget == pytest.approx([20.0, 20.0, 41.2, 41.2], abs=1e-4)
-    assert 20.0 < float(fidelity_budget_db(cfg, 1300, total)) < 41.2
+    assert 20.0 < float(fidelity_budget_db(cfg, 1900, total)) < 41.2
 
 
 def test_watermark_grid_follows_upsampling_and_shrinking() -> None:
