@@ -32,6 +32,11 @@ per-group learning rates, exponential decay over both phases). The IDs share one
 colour layer but the last (``watermark.condition_many``), so each ID learns more often for much less than
 K renders' cost.
 
+Phase 3 (not in the paper; ``watermark.phase3_steps`` > 0): once the field's schedule has ended, the decoder
+alone learns on the finished field's renders of every training view (and of novel views) with every ID
+(``decoder_refit``); the field does not change. :func:`refit_phase` runs it and checkpoints at step
+``phase-1 + phase-2 + phase-3 steps``.
+
 A watermarked run (``WMRUN``) is written by :func:`embed` and read by ``wm_run`` (its layout, the loader
 registered with ``run.load_run``, the keys and decoder, choosing the ID to render).
 """
@@ -42,11 +47,23 @@ import dataclasses
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-from mnerf_jax import augment, budgets, decoder_io, dwt, losses, raymarch, read_window, watermark, wm_run
+from mnerf_jax import (
+    augment,
+    budgets,
+    decoder_io,
+    decoder_refit,
+    dwt,
+    losses,
+    raymarch,
+    read_window,
+    watermark,
+    wm_run,
+)
 from mnerf_jax import config as config_lib
 from mnerf_jax import keys as keys_lib
 from mnerf_jax import run as runs
@@ -185,7 +202,8 @@ def embed(
     Args:
       source_run: a fitted TensoRF run (``mnerf fit``).
       out_dir: the watermarked run: ``run.json``, ``config.json``, ``checkpoints/``, ``keys.json``,
-        ``decoder.npz`` (the decoder as fine-tuned with the field), ``embed.json`` (progress).
+        ``decoder.npz`` (the decoder as fine-tuned with the field, then refitted alone in phase 3 when
+        ``watermark.phase3_steps`` > 0), ``embed.json`` (progress).
       num_ids, bits: ``N`` IDs with ``L``-bit messages (the decoder must read ``L`` bits).
       preset, overrides: the watermark config (``--config``, ``--set``).
       decoder_path: the decoder to start from (default: the shipped one for ``bits``); ``"fresh"``: a
@@ -211,6 +229,9 @@ def embed(
     scene = source.load_scene(data_path, splits=("train",))
     split = scene.split("train")
     check_rgb_images(split.images, f"{data_path or source.data_path or 'procedural scene'} (train split)")
+    if cfg.phase3_steps and cfg.phase3_views and split.cameras.ndc is not None:
+        raise EmbedError("watermark.phase3_views renders novel views around the cameras of an object-centred "
+                         "scene; this one is forward-facing: set watermark.phase3_views=0")  # fmt: skip
     if loaded is None:
         loaded = decoder_io.fresh_decoder(bits, split.images, seed=cfg.seed, wavelet=cfg.wavelet)
     decoder_source = decoder_io.FRESH if fresh else str(Path(loaded.path).resolve())
@@ -236,6 +257,7 @@ def embed(
                 raise EmbedError(f"{out}: its checkpoint holds a {meta.get('kind')!r} model, not a watermark")
             saved = wm_run.normalised_meta(meta)
             check_compatible(saved, wm_run.fingerprint_config(config), out, wm_run.SECTIONS)
+            check_phase3_unchanged(meta, config, out)
             _, tree, meta = wm_run.restore(store, out, optimizer=make_optimizer)
             state = EmbedState(
                 params=jax.tree.map(jnp.asarray, tree["params"]),
@@ -272,8 +294,47 @@ def embed(
         references = clean_references(source, split, progress) if uses_clean_renders(cfg) else None
         loop = EmbedLoop(config, split, keys, layout, geometry, policy, store, out, progress, on_step, vgg,
                          references)  # fmt: skip
-        return loop.run(state, stop_at, started)
+        result = loop.run(state, stop_at, started)
+        field_done = result.steps == total_steps(cfg) and (stop_at is None or stop_at > result.steps)
+        if cfg.phase3_steps and field_done:
+            result = refit_phase(loop, result, split, source, progress)
+        return result
     finally:
         store.close()
+
+
+def check_phase3_unchanged(meta: dict[str, Any], config: Config, out: Path) -> None:
+    """EmbedError when the checkpoint is past the field's schedule (its phase 3 ran) under other phase-3
+    settings than ``config``'s: a run's decoder is refitted once."""
+    if int(meta["step"]) <= total_steps(config.watermark):
+        return
+    ran = {k: meta["config"]["watermark"].get(k) for k in wm_run.PHASE3_DEFAULTS}
+    now = {k: getattr(config.watermark, k) for k in wm_run.PHASE3_DEFAULTS}
+    if ran != now:
+        raise EmbedError(f"{out} has finished its phase 3 (step {meta['step']}) with {ran}, not {now}; "
+                         "a decoder is refitted once: resume with those settings, or embed anew")  # fmt: skip
+
+
+def refit_phase(loop: EmbedLoop, result: EmbedResult, split: Any, source: runs.LoadedRun,
+                progress: bool) -> EmbedResult:  # fmt: skip
+    """Phase 3 on the field ``result`` ended with (saved in ``loop.out``): the decoder alone
+    (``decoder_refit``), then a checkpoint at step ``phase-1 + phase-2 + phase-3 steps``. It is one unit: a
+    run killed inside it redoes it on ``--resume``; the time budget may end it early."""
+    tick = time.perf_counter()
+    cfg = loop.config.watermark
+    clock = loop.clock
+    data = decoder_refit.render_refit_set(wm_run.load_watermarked_run(loop.out), split.cameras, cfg,
+                                          split.images, source, progress)  # fmt: skip
+    keep_going = (lambda: True) if clock is None else (lambda: clock.room_for(0.0, time.perf_counter()))
+    decoder, metrics = decoder_refit.refit_decoder(cfg, result.state.decoder, data, keep_going=keep_going,
+                                                   progress=progress)  # fmt: skip
+    steps = result.steps + int(metrics["steps"])
+    state = result.state.replace(decoder=decoder, step=jnp.asarray(steps, jnp.int32))
+    runs.write_json_atomic(loop.out / runs.CONFIG_FILE, loop.config.to_dict())  # now with its phase 3
+    loop.save(state)
+    last = {**result.last_metrics, "phase": 3.0, "phase3_loss": metrics["loss"],
+            "phase3_steps": metrics["steps"]}  # fmt: skip
+    return dataclasses.replace(result, steps=steps, seconds=result.seconds + time.perf_counter() - tick,
+                               last_metrics=last, state=state)  # fmt: skip
 
 

@@ -34,6 +34,7 @@ class BudgetClock:
     started: float
     step_seconds: list[float] = dataclasses.field(default_factory=list)
     checkpoint_s: float = FIRST_CHECKPOINT_S
+    kept_s: float = 0.0  # kept free by the field's steps for what follows them (phase 3)
 
     def record_step(self, seconds: float) -> None:
         self.step_seconds = [*self.step_seconds, float(seconds)][-RECENT_STEPS:]
@@ -48,7 +49,11 @@ class BudgetClock:
         step_s = self.expected_step_s()
         if step_s is None:
             return True
-        return (now - self.started) + step_s + self.checkpoint_s + RESERVE_S <= self.budget_s
+        return self.room_for(step_s + self.kept_s, now)
+
+    def room_for(self, seconds: float, now: float) -> bool:
+        """True while ``seconds`` more and the final checkpoint end within the budget."""
+        return (now - self.started) + seconds + self.checkpoint_s + RESERVE_S <= self.budget_s
 
 
 def expected_step_seconds(recent: Sequence[float]) -> float | None:

@@ -84,6 +84,7 @@ class EmbedResult:
     last_metrics: dict[str, float]
     redone_steps: int
     stopped_by_budget: bool = False  # watermark.time_budget_min ended it before its schedule did
+    state: EmbedState | None = None  # the state it ended with
 
 
 def seed_budgets(policy: budgets.BudgetPolicy, n_rays: int, n_samples: int, budgets: Sequence[int]) -> None:
@@ -179,7 +180,8 @@ class EmbedLoop:
         cfg = self.config.watermark
         t0 = time.perf_counter()
         if cfg.time_budget_min > 0:
-            self.clock = embed_budget.BudgetClock(cfg.time_budget_min * 60.0, started)
+            kept = cfg.phase3_reserve_min * 60.0 if cfg.phase3_steps else 0.0
+            self.clock = embed_budget.BudgetClock(cfg.time_budget_min * 60.0, started, kept_s=kept)
         total = total_steps(cfg)
         stop = total if stop_at is None else min(int(stop_at), total)
         start = step = int(state.step)
@@ -233,4 +235,4 @@ class EmbedLoop:
             self.save(state)
         return EmbedResult(run_dir=self.out, keys=self.keys, steps=int(state.step),
                            seconds=time.perf_counter() - t0, last_metrics=last, redone_steps=redone,
-                           stopped_by_budget=stopped_by_budget)  # fmt: skip
+                           stopped_by_budget=stopped_by_budget, state=state)  # fmt: skip

@@ -39,12 +39,18 @@ class EmbedError(MnerfError):
     """Bad input to the embedding (a source that is not a fitted TensoRF, an unusable WMRUN, bad images)."""
 
 
+# Phase 3's fields at their defaults (off).
+PHASE3_DEFAULTS = {f.name: f.default for f in dataclasses.fields(WatermarkConfig)
+                   if f.name.startswith("phase3_")}  # fmt: skip
+
+
 def fingerprint_config(config: Config) -> Config:
     """The config with everything that does not change the embedding's trajectory normalised away."""
     # The time budget only decides where a run stops, not its trajectory: a stopped run may be resumed under
-    # another budget (or none).
+    # another budget (or none). Phase 3 comes after the field's trajectory, so a finished two-phase run may be
+    # resumed with one (embed.py refuses to run a second one).
     wm = dataclasses.replace(config.watermark, checkpoint_every=0, keep_checkpoints=0, id_threshold=0.0,
-                             id_test="binomial", time_budget_min=0.0)  # fmt: skip
+                             id_test="binomial", time_budget_min=0.0, **PHASE3_DEFAULTS)  # fmt: skip
     return dataclasses.replace(config, train=TrainConfig(), watermark=wm)
 
 

@@ -71,6 +71,7 @@ def total_steps(cfg: WatermarkConfig) -> int:
 _HOST_ONLY_FIELDS = (
     "min_hamming", "key_seed", "checkpoint_every", "seed", "id_threshold", "id_test", "keep_checkpoints",
     "time_budget_min", "phase1_steps", "phase2_steps", "fidelity_psnr_start", "fidelity_ramp",
+    "phase3_steps", "phase3_views", "phase3_lr", "phase3_batch", "phase3_reserve_min",
 )  # fmt: skip
 
 
@@ -83,8 +84,10 @@ def step_config(cfg: WatermarkConfig) -> WatermarkConfig:
 
 
 def phase_of(step: int, cfg: WatermarkConfig) -> int:
-    """1 for the first ``phase1_steps`` steps, 2 after."""
-    return 1 if step < watermark.phase_steps(cfg)[0] else 2
+    """1 for the first ``phase1_steps`` steps, 2 until the field's schedule ends, 3 after (the decoder alone,
+    ``decoder_refit``)."""
+    first, second = watermark.phase_steps(cfg)
+    return 1 if step < first else 2 if step < first + second else 3
 
 
 def param_labels(tree: PyTree, cfg: WatermarkConfig) -> PyTree:

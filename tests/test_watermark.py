@@ -198,7 +198,7 @@ def test_the_cpu_preset_moves_steps_from_phase_1_to_phase_2() -> None:
     assert plain == WatermarkConfig()
 
 
-def test_the_cpu_quality_preset_is_the_cpu_preset_with_one_patch_more_steps_a_ramp_no_attacks() -> None:
+def test_the_cpu_quality_preset_is_the_cpu_preset_with_one_patch_a_ramp_no_attacks_and_a_phase_3() -> None:
     from mnerf_jax import config
     from mnerf_jax.deferred import patch_layout
     from mnerf_jax.wm_step import fidelity_budget_db
@@ -207,17 +207,21 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_one_patch_more_steps_a_ra
     base = config.load_preset("embed_cpu").watermark
     assert dataclasses.replace(
         cfg, fidelity_psnr=0.0, fidelity_psnr_start=0.0, fidelity_ramp=(0.0, 0.0), augment_prob=0.75,
-        patch_size=64, phase2_steps=2600,
+        patch_size=64, phase2_steps=2600, phase3_steps=0, phase3_views=0, phase3_reserve_min=0.0,
     ) == base  # fmt: skip
     assert cfg.augment_prob == 0.0
     # One patch covers a lego 1/8 view (100 px): the deferred path's single-render branch.
     assert patch_layout(100, 100, cfg.patch_size).num_patches == 1
-    # 20 dB until 35 % of the 4,000 steps, 41.2 dB from 60 % on.
+    # 20 dB until 35 % of the field's 3,400 steps, 41.5 dB from 60 % on.
     total = sum(W.phase_steps(cfg, num_ids=16))
-    assert total == 4000
-    budget = [float(fidelity_budget_db(cfg, step, total)) for step in (0, 1400, 2400, 3999)]
-    assert budget == pytest.approx([20.0, 20.0, 41.2, 41.2], abs=1e-4)
-    assert 20.0 < float(fidelity_budget_db(cfg, 1900, total)) < 41.2
+    assert total == 3400
+    budget = [float(fidelity_budget_db(cfg, step, total)) for step in (0, 1190, 2040, 3399)]
+    assert budget == pytest.approx([20.0, 20.0, 41.5, 41.5], abs=1e-4)
+    assert 20.0 < float(fidelity_budget_db(cfg, 1600, total)) < 41.5
+    # Then the decoder alone: 2,000 steps on the training views and 200 novel views, with 11 of the 60
+    # minutes kept for it.
+    phase3 = (cfg.phase3_steps, cfg.phase3_views, cfg.phase3_reserve_min, cfg.time_budget_min)
+    assert phase3 == (2000, 200, 11, 60)
 
 
 def test_watermark_grid_follows_upsampling_and_shrinking() -> None:

@@ -1,0 +1,191 @@
+"""Phase 3 of the embedding: the decoder alone, refitted on the finished field's renders (decoder_refit)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from typing import TYPE_CHECKING
+
+import jax
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mnerf_jax import decoder as decoder_lib
+from mnerf_jax import decoder_io, decoder_refit, dwt, embed_budget, wm_run
+from mnerf_jax import embed as E
+from mnerf_jax.config import WatermarkConfig
+from mnerf_jax.data import trajectory
+from mnerf_jax.data.types import Cameras, NDCSpace
+from mnerf_jax.errors import MnerfError
+from mnerf_jax.wm_step import phase_of
+
+if TYPE_CHECKING:
+    from conftest import TinyRuns  # the `tiny` fixture's type (tests/conftest.py)
+
+
+def _ring_cameras(n: int = 12) -> Cameras:
+    """``n`` cameras at distance 3.5-4.5 and elevation 10-60° around the origin, looking at it (z up)."""
+    rng = np.random.default_rng(0)
+    theta = rng.uniform(0, 2 * np.pi, n)
+    elev = np.radians(rng.uniform(10, 60, n))
+    dist = rng.uniform(3.5, 4.5, n)
+    unit = np.stack([np.cos(elev) * np.cos(theta), np.cos(elev) * np.sin(theta), np.sin(elev)], 1)
+    pos = dist[:, None] * unit
+    c2w = np.stack([trajectory.look_at(p, np.zeros(3), np.array([0.0, 0.0, 1.0])) for p in pos])
+    ones = np.ones(n, np.float32)
+    return Cameras(c2w=c2w, fx=40 * ones, fy=40 * ones, cx=16 * ones, cy=16 * ones,
+                   distortion=np.zeros((n, 4), np.float32), width=32, height=32)  # fmt: skip
+
+
+@settings(max_examples=20, deadline=None)
+@given(count=st.integers(0, 30), seed=st.integers(0, 2**31 - 1))
+def test_novel_views_stay_within_the_cameras_ranges_and_look_at_their_focus(count: int, seed: int) -> None:
+    cams = _ring_cameras()
+    novel = decoder_refit.novel_cameras(cams, count, seed)
+    assert len(novel) == count and (novel.width, novel.height) == (cams.width, cams.height)
+    if not count:
+        return
+    pos = novel.c2w[:, :, 3].astype(np.float64)
+    dist = np.linalg.norm(pos, axis=-1)
+    elev = np.degrees(np.arcsin(pos[:, 2] / dist))
+    given_pos = cams.c2w[:, :, 3].astype(np.float64)
+    given_dist = np.linalg.norm(given_pos, axis=-1)
+    given_elev = np.degrees(np.arcsin(given_pos[:, 2] / given_dist))
+    assert given_dist.min() - 1e-4 <= dist.min() and dist.max() <= given_dist.max() + 1e-4
+    assert given_elev.min() - 1e-3 <= elev.min() and elev.max() <= given_elev.max() + 1e-3
+    # Every camera looks at the origin (-z axis towards it) with no roll (x axis horizontal).
+    forward = -novel.c2w[:, :, 2]
+    np.testing.assert_allclose(np.sum(forward * (-pos / dist[:, None]), -1), 1.0, atol=1e-4)
+    np.testing.assert_allclose(novel.c2w[:, 2, 0], 0.0, atol=1e-4)
+    again = decoder_refit.novel_cameras(cams, count, seed)
+    np.testing.assert_array_equal(novel.c2w, again.c2w)
+    np.testing.assert_allclose(novel.fx, cams.fx[0])
+
+
+def test_novel_views_refuse_forward_facing_cameras() -> None:
+    cams = dataclasses.replace(_ring_cameras(), ndc=NDCSpace(focal=40.0, width=32, height=32, near=1.0))
+    with pytest.raises(ValueError, match="object-centred"):
+        decoder_refit.novel_cameras(cams, 3, 0)
+
+
+def _two_class_set(bits: int = 8) -> tuple[decoder_refit.RefitSet, dict]:
+    """Two IDs whose renders differ by a pattern each (random 32-px images), and a random decoder."""
+    rng = np.random.default_rng(1)
+    base = rng.uniform(0.2, 0.8, (6, 32, 32, 3)).astype(np.float32)
+    # Low-frequency patterns (8-px blocks), as LL2 keeps them.
+    blocks = rng.normal(0, 0.1, (2, 1, 4, 4, 3))
+    patterns = np.repeat(np.repeat(blocks, 8, axis=2), 8, axis=3).astype(np.float32)
+    renders = np.clip(base[None] + patterns, 0, 1)
+    messages = rng.integers(0, 2, (2, bits)).astype(np.uint8)
+    variables = decoder_lib.init_decoder(jax.random.PRNGKey(0), bits)
+    variables = decoder_lib.fit_whitening(variables, [dwt.ll2(renders.reshape(-1, 32, 32, 3))])
+    return decoder_refit.RefitSet(renders, messages, base), variables
+
+
+def _bit_accuracy(variables: dict, data: decoder_refit.RefitSet) -> float:
+    logits = np.stack([np.asarray(decoder_lib.decode_logits(variables, r)) for r in data.renders])
+    return float(((logits > 0) == data.messages[:, None].astype(bool)).mean())
+
+
+def test_the_refit_decoder_learns_the_ids_keys_and_is_deterministic() -> None:
+    data, variables = _two_class_set()
+    cfg = WatermarkConfig(phase3_steps=100, phase3_batch=8, phase3_lr=1e-3, seed=3)
+    before = _bit_accuracy(variables, data)
+    refit, metrics = decoder_refit.refit_decoder(cfg, variables, data)
+    assert metrics["steps"] == 100 and np.isfinite(metrics["loss"])
+    after = _bit_accuracy(refit, data)
+    assert after >= 0.9 and before < 0.7
+    # Only the weights learn; BatchNorm statistics and whitening stay.
+    for name in set(variables) - {"params"}:
+        for x, y in zip(jax.tree.leaves(variables[name]), jax.tree.leaves(refit[name]), strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    again, _ = decoder_refit.refit_decoder(cfg, variables, data)
+    for x, y in zip(jax.tree.leaves(refit), jax.tree.leaves(again), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    answers = iter([True] * 5 + [False])
+    _, metrics = decoder_refit.refit_decoder(cfg, variables, data, keep_going=answers.__next__)
+    assert metrics["steps"] == 5
+
+
+def test_the_refit_schedule_warms_up_then_decays_to_zero() -> None:
+    schedule = decoder_refit.refit_schedule(WatermarkConfig(phase3_steps=1000, phase3_lr=1e-3))
+    assert float(schedule(0)) == 0.0
+    assert float(schedule(100)) == pytest.approx(1e-3)
+    assert float(schedule(50)) == pytest.approx(5e-4)
+    assert float(schedule(1000)) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_phase_three_follows_the_fields_schedule_and_the_budget_keeps_room_for_it() -> None:
+    cfg = WatermarkConfig(phase1_steps=2, phase2_steps=3, phase3_steps=4)
+    assert [phase_of(s, cfg) for s in range(7)] == [1, 1, 2, 2, 2, 3, 3]
+    clock = embed_budget.BudgetClock(budget_s=100.0, started=0.0, kept_s=30.0)
+    clock.record_step(1.0)
+    # 1 s step + 5 s checkpoint + 45 s reserve + 30 s kept: the last step starts by t = 19 s.
+    assert clock.room_for_a_step(19.0) and not clock.room_for_a_step(19.5)
+    assert clock.room_for(0.0, 50.0) and not clock.room_for(0.0, 50.5)
+
+
+def test_phase_three_settings_are_checked() -> None:
+    from mnerf_jax.watermark import WatermarkError, check_config
+
+    for bad in ({"phase3_steps": -1}, {"phase3_views": -2}, {"phase3_batch": 0}, {"phase3_lr": 0.0},
+                {"phase3_reserve_min": -1.0}):  # fmt: skip
+        with pytest.raises(WatermarkError, match="phase3"):
+            check_config(WatermarkConfig(**bad))
+
+
+def test_tiny_embed_with_phase_three_and_its_resume(tiny: TinyRuns) -> None:
+    # The tiny run's field (2 IDs, 8 bits) gets phase 3 by --resume (its settings are not in the field's
+    # fingerprint); the decoder changes, the field does not; keys.json follows the new decoder; a second
+    # phase 3 with other settings is refused, one with the same settings is a no-op.
+    root = tiny.root
+    run = root / "p3"
+    shutil.copytree(tiny.wm, run)
+    before = wm_run.load_watermarked_run(run)
+    phase3 = [*tiny.embed_overrides, "watermark.phase3_steps=6", "watermark.phase3_views=2",
+              "watermark.phase3_batch=4"]  # fmt: skip
+    args = dict(decoder_path=tiny.decoder, progress=False, resume=True)
+    result = E.embed(tiny.fit, run, 2, 8, overrides=phase3, **args)
+    assert result.steps == before.step + 6
+    assert result.last_metrics["phase3_steps"] == 6
+    after = wm_run.load_watermarked_run(run)
+    assert after.step == before.step + 6
+    assert json.loads((run / "embed.json").read_text())["phase"] == 3
+    assert json.loads((run / "config.json").read_text())["watermark"]["phase3_steps"] == 6
+    for x, y in zip(jax.tree.leaves(before.params), jax.tree.leaves(after.params), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    dec_before, dec_after = before.extras["decoder"], after.extras["decoder"]
+    assert dec_before.fingerprint != dec_after.fingerprint
+    assert json.loads((run / "keys.json").read_text())["decoder_fingerprint"] == dec_after.fingerprint
+    assert decoder_io.load_decoder(run / "decoder.npz").fingerprint == dec_after.fingerprint
+    again = E.embed(tiny.fit, run, 2, 8, overrides=phase3, **args)
+    assert again.steps == after.step
+    assert wm_run.load_watermarked_run(run).extras["decoder"].fingerprint == dec_after.fingerprint
+    with pytest.raises(MnerfError, match="phase 3"):
+        E.embed(tiny.fit, run, 2, 8, overrides=[*phase3, "watermark.phase3_steps=7"], **args)
+
+
+def test_novel_views_on_a_forward_facing_scene_are_refused_before_anything_is_written(
+    tiny: TinyRuns, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from mnerf_jax import run as runs
+
+    real = runs.LoadedRun.load_scene
+
+    def forward_facing(self, *a, **k):
+        scene = real(self, *a, **k)
+        split = scene.split("train")
+        ndc = NDCSpace(focal=float(split.cameras.fx[0]), width=split.cameras.width,
+                       height=split.cameras.height, near=1.0)  # fmt: skip
+        cams = dataclasses.replace(split.cameras, ndc=ndc)
+        return dataclasses.replace(scene, splits={"train": dataclasses.replace(split, cameras=cams)})
+
+    monkeypatch.setattr(runs.LoadedRun, "load_scene", forward_facing)
+    out = tiny.root / "p3_ndc"
+    overrides = [*tiny.embed_overrides, "watermark.phase3_steps=2", "watermark.phase3_views=2"]
+    with pytest.raises(MnerfError, match="forward-facing"):
+        E.embed(tiny.fit, out, 2, 8, overrides=overrides, decoder_path=tiny.decoder, progress=False)
+    assert not out.exists()
