@@ -33,8 +33,8 @@ from mnerf_jax.errors import MnerfError
 
 # Watermark fields that say which seed ran or how the run was kept, not what was trained: runs that differ
 # only in them are seeds of one setting.
-IGNORED_BY_DEFAULT: tuple[str, ...] = ("seed", "key_seed", "time_budget_min", "checkpoint_every",
-                                       "keep_checkpoints")  # fmt: skip
+IGNORED_BY_DEFAULT: tuple[str, ...] = ("seed", "key_seed", "time_budget_min", "phase3_reserve_min",
+                                       "checkpoint_every", "keep_checkpoints")  # fmt: skip
 
 # (figure, format, header) in table order.
 FIGURES: tuple[tuple[str, str, str], ...] = (
