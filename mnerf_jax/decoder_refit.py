@@ -34,8 +34,6 @@ PyTree = Any
 # A batch holds phase3_batch renders and a quarter as many unwatermarked images (8 per 32, as in the sweep of
 # docs/findings.md, "The decoder refitted on the finished field").
 NEGATIVES_PER_BATCH_DIVISOR = 4
-# IDs rendered together: one geometry pass per view serves them all (as evaluation renders).
-MAX_IDS_PER_RENDER = 16
 
 
 @flax.struct.dataclass
@@ -103,22 +101,17 @@ def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_tr
     views = sum(len(c) for c in sets)
     bar = tqdm(total=views * keys.num_ids, disable=not progress, desc="embed phase 3 (renders)",
                unit="render", dynamic_ncols=True)  # fmt: skip
-    per_id: dict[int, list[np.ndarray]] = {n: [] for n in range(keys.num_ids)}
     tick = lambda _, rgb: bar.update(rgb.shape[-1] // 3)  # noqa: E731  (a view's renders: one per ID)
     try:
-        for cams in sets:
-            for first in range(0, keys.num_ids, MAX_IDS_PER_RENDER):
-                ids = range(first, min(first + MAX_IDS_PER_RENDER, keys.num_ids))
-                out = wm_run.render_with_ids(run, ids, cams, on_view=tick)
-                for n, images in out.items():
-                    per_id[n].extend(images)
+        parts = [wm_run.render_every_id(run, cams, on_view=tick) for cams in sets]
     finally:
         bar.close()
-    renders = np.stack([np.stack(per_id[n]) for n in range(keys.num_ids)]).astype(np.float32)
+    renders = np.stack([np.concatenate([part[n] for part in parts]) for n in range(keys.num_ids)])
     negatives = [np.asarray(ground_truth, np.float32)]
     if clean_model is not None:
         negatives += [np.stack(runs.render_views(clean_model, cams)).astype(np.float32) for cams in sets]
-    return RefitSet(renders, np.asarray(keys.messages, np.uint8), np.concatenate(negatives))
+    messages = np.asarray(keys.messages, np.uint8)
+    return RefitSet(renders.astype(np.float32), messages, np.concatenate(negatives))
 
 
 def refit_schedule(cfg: WatermarkConfig) -> optax.Schedule:
@@ -127,6 +120,11 @@ def refit_schedule(cfg: WatermarkConfig) -> optax.Schedule:
     bits after 500 steps at 1e-3 without warm-up)."""
     steps = max(int(cfg.phase3_steps), 1)
     return optax.warmup_cosine_decay_schedule(0.0, cfg.phase3_lr, max(steps // 10, 1), steps)
+
+
+def refit_optimizer(cfg: WatermarkConfig) -> optax.GradientTransformation:
+    """Phase 3's Adam over the decoder's weights, on :func:`refit_schedule`."""
+    return optax.adam(refit_schedule(cfg))
 
 
 def make_refit_step(
@@ -142,7 +140,7 @@ def make_refit_step(
     batch = int(cfg.phase3_batch)
     n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.lambda_clean else 0
     window, background = read_window.of_config(cfg)
-    tx = optax.adam(refit_schedule(cfg))
+    tx = refit_optimizer(cfg)
 
     def prepare(key: jax.Array, images: jax.Array) -> jax.Array:
         k_round, k_aug = jax.random.split(key)
@@ -200,7 +198,7 @@ def refit_decoder(
     step = make_refit_step(cfg, decoder_vars)
     arrays = jax.tree.map(jnp.asarray, data)
     params = decoder_vars["params"]
-    opt_state = optax.adam(refit_schedule(cfg)).init(params)
+    opt_state = refit_optimizer(cfg).init(params)
     key = jax.random.fold_in(jax.random.key(int(cfg.seed)), 0xDEC3)
     loss = jnp.full((), jnp.nan)
     done = 0

@@ -24,10 +24,6 @@ from mnerf_jax.identification import (
     logits_to_bits,
 )
 
-# IDs rendered together in evaluation: one geometry pass per view serves them all (wm_run.render_with_ids).
-IDS_PER_RENDER = 16
-
-
 # ------------------------------------------------------------------------------------------- evaluation
 
 
@@ -74,7 +70,7 @@ def evaluate_watermarked_run(
 ) -> dict[str, Any]:
     """Evaluate a watermarked run on ``split``; writes ``run_dir/eval-<split>.json`` and returns its dict.
 
-    For every evaluated view and every ID (up to :data:`IDS_PER_RENDER` IDs from one geometry pass): render
+    For every evaluated view and every ID (up to ``wm_run.IDS_PER_RENDER`` IDs from one geometry pass): render
     (float, unclamped by nothing but the renderer's [0, 1]),
     decode, and again after a round trip through an 8-bit PNG (``run_dir/eval-<split>/id<K>/<view>.png``).
     The clean (pre-watermark) model of ``--from`` renders the same views: quality is reported against the
@@ -95,7 +91,7 @@ def evaluate_watermarked_run(
     ``_clean`` and ``_gt``.
     """
     from mnerf_jax import run as runs
-    from mnerf_jax import watermark, wm_run
+    from mnerf_jax import wm_run
 
     run_dir = Path(run_dir)
     run = wm_run.load_watermarked_run(run_dir)
@@ -121,12 +117,7 @@ def evaluate_watermarked_run(
         clean = None
         if source is not None:
             clean = np.stack(runs.render_views(source, scene_split.cameras, indices, on_view=tick))
-        renders: dict[int, np.ndarray] = {}
-        group = IDS_PER_RENDER if watermark.uses_ids(run.config.watermark) else 1
-        for first in range(0, n_ids, group):
-            ids = range(first, min(first + group, n_ids))
-            out = wm_run.render_with_ids(run, ids, scene_split.cameras, indices, on_view=tick)
-            renders.update({n: np.stack(images) for n, images in out.items()})
+        renders = wm_run.render_every_id(run, scene_split.cameras, indices, on_view=tick)
     finally:
         if bar is not None:
             bar.close()

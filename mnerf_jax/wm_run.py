@@ -187,6 +187,29 @@ def render_with_ids(
     return {n: [img[..., 3 * k : 3 * k + 3] for img in stacked] for k, n in enumerate(ids)}
 
 
+# IDs rendered together by render_every_id: one geometry pass per view serves them all.
+IDS_PER_RENDER = 16
+
+
+def render_every_id(
+    run: runs.LoadedRun,
+    cameras: Any,
+    indices: Sequence[int] | None = None,
+    *,
+    on_view: Callable[[int, np.ndarray], None] | None = None,
+) -> dict[int, np.ndarray]:
+    """Evaluation renders of ``cameras`` by every ID of the run, :data:`IDS_PER_RENDER` IDs per geometry pass
+    (one at a time where renders do not depend on the ID): ``{ID: [V, H, W, 3]}``. ``on_view`` as
+    :func:`render_with_ids`."""
+    n_ids = int(run.extras["num_ids"])
+    group = IDS_PER_RENDER if watermark.uses_ids(run.config.watermark) else 1
+    renders: dict[int, np.ndarray] = {}
+    for first in range(0, n_ids, group):
+        out = render_with_ids(run, range(first, min(first + group, n_ids)), cameras, indices, on_view=on_view)
+        renders.update({n: np.stack(images) for n, images in out.items()})
+    return renders
+
+
 def require_watermarked(run_dir: str | Path) -> dict[str, Any]:
     """``run.json`` of a watermarked run directory; EmbedError saying what ``run_dir`` holds otherwise."""
     run_dir = Path(run_dir)
