@@ -324,7 +324,7 @@ def refit_phase(loop: EmbedLoop, result: EmbedResult, split: Any, source: runs.L
     cfg = loop.config.watermark
     clock = loop.clock
     data = decoder_refit.render_refit_set(wm_run.load_watermarked_run(loop.out), split.cameras, cfg,
-                                          split.images, source, progress)  # fmt: skip
+                                          split.images, source, progress, loop.references)  # fmt: skip
     keep_going = (lambda: True) if clock is None else (lambda: clock.room_for(0.0, time.perf_counter()))
     decoder, metrics = decoder_refit.refit_decoder(cfg, result.state.decoder, data, keep_going=keep_going,
                                                    progress=progress)  # fmt: skip

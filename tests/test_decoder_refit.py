@@ -189,3 +189,25 @@ def test_novel_views_on_a_forward_facing_scene_are_refused_before_anything_is_wr
     with pytest.raises(MnerfError, match="forward-facing"):
         E.embed(tiny.fit, out, 2, 8, overrides=overrides, decoder_path=tiny.decoder, progress=False)
     assert not out.exists()
+
+
+def test_the_refit_set_reuses_clean_renders_of_the_training_views_it_is_given(tiny: TinyRuns) -> None:
+    # The embedding's quality budget has already rendered the training views with the clean model (float16
+    # references); phase 3 then renders only the novel views clean, and its set is the same.
+    from mnerf_jax import run as runs
+
+    wm = wm_run.load_watermarked_run(tiny.wm)
+    clean = runs.load_run(tiny.fit)
+    split = wm.load_scene(None, splits=("train",)).split("train")
+    cfg = dataclasses.replace(wm.config.watermark, phase3_views=2)
+    rendered = decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images, clean)
+    references = np.stack(runs.render_views(clean, split.cameras)).astype(np.float16)
+    reused = decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images, clean,
+                                            clean_renders=references)  # fmt: skip
+    views = len(split.images)
+    assert reused.negatives.shape == rendered.negatives.shape == (2 * views + 2, *split.images.shape[1:])
+    np.testing.assert_allclose(reused.negatives, rendered.negatives, atol=5e-4)
+    np.testing.assert_array_equal(reused.renders, rendered.renders)
+    with pytest.raises(ValueError, match="clean renders"):
+        decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images, clean,
+                                       clean_renders=references[1:])  # fmt: skip
