@@ -98,6 +98,8 @@ def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_tr
     from mnerf_jax import run as runs
     from mnerf_jax import wm_run
 
+    if clean_renders is not None and len(clean_renders) != len(cameras):
+        raise ValueError(f"{len(clean_renders)} clean renders for {len(cameras)} training views")
     keys = run.extras["keys"]
     sets = [cameras]
     if cfg.phase3_views:
@@ -112,13 +114,11 @@ def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_tr
         bar.close()
     renders = np.stack([np.concatenate([part[n] for part in parts]) for n in range(keys.num_ids)])
     negatives = [np.asarray(ground_truth, np.float32)]
+    if clean_model is not None and clean_renders is not None:
+        negatives.append(np.asarray(clean_renders, np.float32))  # the training views' (sets[0]), given
     if clean_model is not None:
-        if clean_renders is not None:
-            if len(clean_renders) != len(cameras):
-                raise ValueError(f"{len(clean_renders)} clean renders for {len(cameras)} training views")
-            negatives.append(np.asarray(clean_renders, np.float32))
-            sets = sets[1:]
-        negatives += [np.stack(runs.render_views(clean_model, cams)).astype(np.float32) for cams in sets]
+        to_render = sets if clean_renders is None else sets[1:]
+        negatives += [np.stack(runs.render_views(clean_model, cams)).astype(np.float32) for cams in to_render]
     messages = np.asarray(keys.messages, np.uint8)
     return RefitSet(renders.astype(np.float32), messages, np.concatenate(negatives))
 
