@@ -187,6 +187,13 @@ class WatermarkConfig:
     # The backdrop's grey level the window's centring ignores (1: white, NeRF-Synthetic); < 0: centre the
     # window on the image.
     read_background: float = 1.0
+    # The decoder's logits are averaged over the read windows moved by up to read_jitter pixels on each axis
+    # ((2r + 1)² windows; read_window.jittered_logits) wherever a run's renders are read (evaluation,
+    # mnerf extract: the radius is stored in the decoder file); 0: the centred window alone. Reading only:
+    # the embedding trains on the centred window (phase 3 trained on moved windows read worse). The lego CPU
+    # hour within 0.5 dB (embed_cpu_quality, seed 0), r = 1: 97.7 % bits, named 74.0 %, against 96.6 and
+    # 66.4 % (docs/findings.md, "Reading over jittered windows, and phase 3's rate").
+    read_jitter: int = 0
     checkpoint_every: int = 100
     seed: int = 0  # embedding randomness: module init, ID and view per step, sample jitter, augmentations
     jitter: bool = True  # jitter samples along rays while embedding (as TensoRF's training renders)

@@ -148,7 +148,7 @@ def make_refit_step(
     """
     batch = int(cfg.phase3_batch)
     n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.lambda_clean else 0
-    window, background = read_window.of_config(cfg)
+    window, background, _ = read_window.of_config(cfg)  # phase 3 trains on the centred window (findings)
     tx = refit_optimizer(cfg)
 
     def prepare(key: jax.Array, images: jax.Array) -> jax.Array:

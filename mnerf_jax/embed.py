@@ -143,6 +143,10 @@ def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequen
         raise EmbedError(f"unknown watermark.wavelet {cfg.wavelet!r} ({' | '.join(dwt.DEC_LO)})")
     if cfg.read_window:
         read_window.check_fraction(cfg.read_window, "watermark.read_window")
+    if cfg.read_jitter < 0 or (cfg.read_jitter and not cfg.read_window):
+        raise EmbedError(f"watermark.read_jitter is a radius in pixels ≥ 0 that moves the read window, and "
+                         f"needs watermark.read_window > 0; got {cfg.read_jitter} with read_window "
+                         f"{cfg.read_window}")  # fmt: skip
     if total_steps(config.watermark) < 1:
         raise EmbedError("watermark.phase1_steps + watermark.phase2_steps must be ≥ 1")
     return config

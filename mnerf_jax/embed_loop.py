@@ -140,7 +140,12 @@ class EmbedLoop:
         dec_meta = decoder_io.save_decoder(
             self.out / DECODER_FILE,
             state.decoder,
-            {"embed_step": step, "read_window": wm.read_window, "read_background": wm.read_background},
+            {
+                "embed_step": step,
+                "read_window": wm.read_window,
+                "read_background": wm.read_background,
+                "read_jitter": wm.read_jitter,
+            },
             wavelet=wm.wavelet,
         )
         self.keys = keys_lib.with_fingerprint(self.keys, dec_meta["fingerprint"])

@@ -22,11 +22,19 @@ from mnerf_jax.errors import MnerfError
 PIXEL_BUDGET = 1 << 19  # image pixels per decoder call (chunks of 52 images at 100², 1 at 800²)
 
 
-@xla_cpu.jit_cpu_tuned(static_argnames=("wavelet", "window", "background"))
+@xla_cpu.jit_cpu_tuned(static_argnames=("wavelet", "window", "background", "jitter"))
 def _decode_chunk(
-    variables: Mapping[str, Any], images: jax.Array, wavelet: str, window: float, background: float | None
+    variables: Mapping[str, Any],
+    images: jax.Array,
+    wavelet: str,
+    window: float,
+    background: float | None,
+    jitter: int,
 ) -> jax.Array:
-    return dec.apply_ll2(variables, dwt.ll2(read_window.read_window(images, window, background), wavelet))
+    logits_of = lambda windows: dec.apply_ll2(variables, dwt.ll2(windows, wavelet))  # noqa: E731
+    if jitter:
+        return read_window.jittered_logits(logits_of, images, window, background, jitter)
+    return logits_of(read_window.read_window(images, window, background))
 
 
 def check_images(images: Any) -> np.ndarray | jax.Array:
@@ -43,15 +51,16 @@ def check_images(images: Any) -> np.ndarray | jax.Array:
     return images
 
 
-def chunk_size(n: int, height: int, width: int, batch_size: int = 32) -> int:
+def chunk_size(n: int, height: int, width: int, batch_size: int = 32, reads: int = 1) -> int:
     """Images per decoder call for ``n`` images of ``height × width``: the fewest calls of at most
-    ``batch_size`` images and ``PIXEL_BUDGET`` pixels, split as evenly as they go (the last call is padded).
+    ``batch_size`` images and ``PIXEL_BUDGET`` pixels, split as evenly as they go (the last call is padded);
+    each image read ``reads`` times (a jittered read: that many windows) counts that many times.
 
     Large images go a few at a time: per-image speed is flat in the chunk size on CPU (each call already uses
     every core), while activations of ``[chunk, H/4, W/4, 64]`` floats outgrow the caches. Even calls: 32
     images at 200² in calls of 13 decoded 39 (13 + 13 + 6 padded), 22 % more than 3 calls of 11.
     """
-    most = max(1, min(batch_size, n, PIXEL_BUDGET // (height * width)))
+    most = max(1, min(batch_size // reads, n, PIXEL_BUDGET // (height * width * reads)))
     calls = -(-n // most)
     return -(-n // calls)
 
@@ -63,12 +72,15 @@ def decode(
     batch_size: int = 32,
     window: float = 0.0,
     background: float | None = 1.0,
+    jitter: int = 0,
 ) -> jax.Array:
     """Logits of images ``[B, H, W, 3]`` in [0, 1] → ``[B, L]`` (a single ``[H, W, 3]`` → ``[L]``).
 
     Integer images (uint8) are scaled by 1/255. The work is done in chunks of at most ``batch_size`` images
     and ``PIXEL_BUDGET`` pixels. ``window``, ``background``: the decoder reads
-    ``read_window.read_window(images, window, background)`` (a watermarked run's ``watermark.read_window``).
+    ``read_window.read_window(images, window, background)`` (a watermarked run's ``watermark.read_window``);
+    ``jitter`` > 0: the mean of its logits over the windows moved by up to that many pixels
+    (``read_window.jittered_logits``; a run's ``watermark.read_jitter``).
     """
     images = check_images(images)
     single = np.ndim(images) == 3
@@ -79,13 +91,15 @@ def decode(
     if single:
         x = x[None]
     n, h, w = x.shape[:3]
-    chunk = chunk_size(n, h, w, batch_size)
+    jitter = jitter if window else 0  # the whole image has no room to move
+    chunk = chunk_size(n, h, w, batch_size, len(read_window.jitter_offsets(jitter)))
     outs = []
     for start in range(0, n, chunk):
         part = x[start : start + chunk]
         if part.shape[0] < chunk:  # pad so that every chunk has the compiled shape
             part = jnp.concatenate([part, jnp.zeros((chunk - part.shape[0], *part.shape[1:]), part.dtype)])
-        outs.append(_decode_chunk(variables, part, wavelet, window, background)[: min(chunk, n - start)])
+        logits = _decode_chunk(variables, part, wavelet, window, background, jitter)
+        outs.append(logits[: min(chunk, n - start)])
     logits = jnp.concatenate(outs) if len(outs) > 1 else outs[0]
     return logits[0] if single else logits
 
@@ -137,9 +151,10 @@ def decode_paths(
     batch_size: int = 32,
     window: float = 0.0,
     background: float | None = 1.0,
+    jitter: int = 0,
 ) -> np.ndarray:
     """Logits ``[N, L]`` of image files, in the given order; images of one size are decoded together
-    (``window``, ``background``: as :func:`decode`)."""
+    (``window``, ``background``, ``jitter``: as :func:`decode`)."""
     images = [load_image(p) for p in paths]
     by_size: dict[tuple[int, int], list[int]] = {}
     for i, image in enumerate(images):
@@ -148,7 +163,7 @@ def decode_paths(
     out = np.zeros((len(images), bits), np.float32)
     for indices in by_size.values():
         batch = np.stack([images[i] for i in indices])
-        out[indices] = np.asarray(decode(variables, batch, wavelet, batch_size, window, background))
+        out[indices] = np.asarray(decode(variables, batch, wavelet, batch_size, window, background, jitter))
     return out
 
 

@@ -19,11 +19,12 @@ not its position.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from mnerf_jax.errors import MnerfError
 
@@ -79,11 +80,14 @@ def window_origin(images: jax.Array, side: int, background: float | None) -> jax
     return jnp.clip(corner, 0, jnp.asarray([h - side, w - side], jnp.int32))
 
 
-def read_window(images: jax.Array, fraction: float, background: float | None = 1.0) -> jax.Array:
+def read_window(
+    images: jax.Array, fraction: float, background: float | None = 1.0, offsets: jax.Array | None = None
+) -> jax.Array:
     """The windows ``[B, S, S, 3]`` the decoder reads of images ``[B, H, W, 3]``; ``fraction`` 0: the images.
 
     ``S`` = :func:`window_side`; ``background``: the empty backdrop's grey level (1: white, NeRF-Synthetic's
-    convention), or None to centre every window on its image.
+    convention), or None to centre every window on its image. ``offsets [B, 2]`` (int rows, columns): move
+    each window by that much from its centred place (still kept inside the image; :func:`jitter_offsets`).
     """
     if not fraction:
         return images
@@ -92,7 +96,43 @@ def read_window(images: jax.Array, fraction: float, background: float | None = 1
     if side == h == w:
         return images
     origin = window_origin(images, side, background)
+    if offsets is not None:
+        origin = jnp.clip(origin + jnp.asarray(offsets, jnp.int32), 0, jnp.asarray([h - side, w - side]))
     return jax.vmap(lambda x, o: jax.lax.dynamic_slice(x, (o[0], o[1], 0), (side, side, 3)))(images, origin)
+
+
+def jittered_logits(
+    logits_of: Callable[[jax.Array], jax.Array],
+    images: jax.Array,
+    fraction: float,
+    background: float | None,
+    radius: int,
+) -> jax.Array:
+    """Logits ``[B, L]`` of images ``[B, H, W, 3]`` averaged over the windows :func:`jitter_offsets` gives
+    (``radius`` 0: the centred window alone). ``logits_of``: windows ``[B', S, S, 3]`` → logits ``[B', L]``,
+    given all ``(2r + 1)² · B`` windows in one batch."""
+    offsets = jitter_offsets(radius)
+    b = images.shape[0]
+    windows = jnp.concatenate([
+        read_window(images, fraction, background, jnp.broadcast_to(jnp.asarray(o), (b, 2))) for o in offsets
+    ])  # fmt: skip
+    return jnp.mean(logits_of(windows).reshape(len(offsets), b, -1), axis=0)
+
+
+def check_jitter(radius: int) -> int:
+    """``radius`` when it is a read jitter (an int ≥ 0, pixels); MnerfError otherwise."""
+    if isinstance(radius, bool) or int(radius) != radius or radius < 0:
+        raise MnerfError(f"the read jitter is a radius in pixels, an integer at least 0, got {radius}")
+    return int(radius)
+
+
+def jitter_offsets(radius: int) -> np.ndarray:
+    """Every window offset ``[(2r + 1)², 2]`` (int32 rows, columns) within ``radius`` pixels on each axis,
+    ``(0, 0)`` first: the windows a jittered read averages over (``watermark.read_jitter``)."""
+    check_jitter(radius)
+    steps = np.arange(-radius, radius + 1)
+    grid = np.stack(np.meshgrid(steps, steps, indexing="ij"), -1).reshape(-1, 2)
+    return np.concatenate([np.zeros((1, 2)), grid[np.any(grid != 0, axis=1)]]).astype(np.int32)
 
 
 def background_of(read_background: float) -> float | None:
@@ -100,12 +140,14 @@ def background_of(read_background: float) -> float | None:
     return None if read_background < 0 else float(read_background)
 
 
-def of_config(wm: Any) -> tuple[float, float | None]:
-    """``(fraction, background)`` of a watermark config (``read_window``, ``read_background``)."""
-    return float(wm.read_window), background_of(float(wm.read_background))
+def of_config(wm: Any) -> tuple[float, float | None, int]:
+    """``(fraction, background, jitter)`` of a watermark config (``read_window``, ``read_background``,
+    ``read_jitter``)."""
+    return float(wm.read_window), background_of(float(wm.read_background)), int(wm.read_jitter)
 
 
-def of_metadata(meta: Mapping[str, Any]) -> tuple[float, float | None]:
-    """``(fraction, background)`` recorded in a decoder file's metadata by ``mnerf embed`` (a file without
-    them reads the whole image)."""
-    return float(meta.get("read_window", 0.0)), background_of(float(meta.get("read_background", 1.0)))
+def of_metadata(meta: Mapping[str, Any]) -> tuple[float, float | None, int]:
+    """``(fraction, background, jitter)`` recorded in a decoder file's metadata by ``mnerf embed`` (a file
+    without them reads the whole image, once)."""
+    return (float(meta.get("read_window", 0.0)), background_of(float(meta.get("read_background", 1.0))),
+            int(meta.get("read_jitter", 0)))  # fmt: skip

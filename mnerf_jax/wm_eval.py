@@ -7,13 +7,14 @@ model's renders of the same views show what an unwatermarked image decodes to.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mnerf_jax import significance
+from mnerf_jax import read_window, significance
 from mnerf_jax.data.images import round_to_8bit, to_uint8
 from mnerf_jax.identification import (
     bit_accuracy,
@@ -30,11 +31,18 @@ from mnerf_jax.identification import (
 def decode_renders(decoder: Any, wm: Any, images: np.ndarray, batch: int = 16) -> np.ndarray:
     """Logits ``[B, L]`` of ``images`` as the run's decoder reads them (``wm``: its watermark config, for the
     read window)."""
-    from mnerf_jax import extract, read_window
+    from mnerf_jax import extract
 
     images = np.asarray(images, np.float32)
-    window, background = read_window.of_config(wm)
-    return np.asarray(extract.decode(decoder.variables, images, decoder.wavelet, batch, window, background))
+    return np.asarray(extract.decode(decoder.variables, images, decoder.wavelet, batch,
+                                     *read_window.of_config(wm)))  # fmt: skip
+
+
+def with_read_jitter(wm: Any, read_jitter: int | None) -> Any:
+    """The watermark config ``wm`` read with ``read_jitter`` (None: as it is); MnerfError below 0."""
+    if read_jitter is None:
+        return wm
+    return dataclasses.replace(wm, read_jitter=read_window.check_jitter(read_jitter))
 
 
 def _save_and_reload_png(path: Path, image: np.ndarray) -> np.ndarray:
@@ -67,6 +75,7 @@ def evaluate_watermarked_run(
     save_pngs: bool = True,
     progress: bool = False,
     keep_renders: bool = False,
+    read_jitter: int | None = None,
 ) -> dict[str, Any]:
     """Evaluate a watermarked run on ``split``; writes ``run_dir/eval-<split>.json`` and returns its dict.
 
@@ -88,7 +97,8 @@ def evaluate_watermarked_run(
     (``..._by_test``; and per ID, which keys the false detections claimed: ``clean_false_detection_ids [N]``),
     ``num_ids``, ``bits``, ``split``, ``views``, ``per_id`` and ``identification`` (confusion matrices).
     With ``keep_renders`` the returned dict (not the file) also holds ``_renders`` ``{ID: [V, H, W, 3]}``,
-    ``_clean`` and ``_gt``.
+    ``_clean`` and ``_gt``. ``read_jitter``: read with this jitter instead of the run's
+    ``watermark.read_jitter`` (recorded as ``read_jitter``).
     """
     from mnerf_jax import run as runs
     from mnerf_jax import wm_run
@@ -97,8 +107,9 @@ def evaluate_watermarked_run(
     run = wm_run.load_watermarked_run(run_dir)
     keys = run.extras["keys"]
     decoder = run.extras["decoder"]
-    thr = float(run.config.watermark.id_threshold if threshold is None else threshold)
-    test = significance.check_test(run.config.watermark.id_test if test is None else test)
+    wm = with_read_jitter(run.config.watermark, read_jitter)
+    thr = float(wm.id_threshold if threshold is None else threshold)
+    test = significance.check_test(wm.id_test if test is None else test)
     scene_split = run.load_scene(data_path, splits=(split,)).split(split)
     indices = runs.view_indices(len(scene_split), max_views)
     names = [scene_split.names[i] for i in indices]
@@ -125,13 +136,13 @@ def evaluate_watermarked_run(
     png_dir = run_dir / f"eval-{split}"
     per_id, true_ids, decoded, decoded_png, all_renders = [], [], [], [], []
     for n in range(n_ids):
-        logits = decode_renders(decoder, run.config.watermark, renders[n])
+        logits = decode_renders(decoder, wm, renders[n])
         if save_pngs:
             reloaded = np.stack([_save_and_reload_png(png_dir / f"id{n}" / f"{name}.png", img)
                                  for name, img in zip(names, renders[n], strict=True)])  # fmt: skip
         else:
             reloaded = round_to_8bit(np.asarray(renders[n]))
-        logits_png = decode_renders(decoder, run.config.watermark, reloaded)
+        logits_png = decode_renders(decoder, wm, reloaded)
         bits, bits_png = logits_to_bits(logits), logits_to_bits(logits_png)
         ident_n = identify_logits(logits, keys.messages, thr)
         per_id.append({
@@ -166,7 +177,8 @@ def evaluate_watermarked_run(
         "num_ids": n_ids,
         "bits": keys.bits,
         "min_hamming": keys.min_hamming,
-        "variant": run.config.watermark.variant,
+        "variant": wm.variant,
+        "read_jitter": wm.read_jitter,
         "step": run.step,
         "decoder_fingerprint": decoder.fingerprint,
         "bit_accuracy_mean": float(np.mean(accs)),
@@ -190,7 +202,7 @@ def evaluate_watermarked_run(
     if clean is not None:
         vs_clean = _quality(stacked, np.tile(clean, (n_ids, 1, 1, 1)), lpips_net)
         clean_q = _quality(clean, gt, lpips_net)
-        clean_logits = decode_renders(decoder, run.config.watermark, clean)
+        clean_logits = decode_renders(decoder, wm, clean)
         clean_bits = logits_to_bits(clean_logits)
         clean_ident = identify_logits(clean_logits, keys.messages, thr, test)
         false_claims = false_detection_summary(clean_ident, n_ids)
@@ -237,20 +249,22 @@ def identify_images(
     threshold: float | None = None,
     batch_size: int = 32,
     test: str | None = None,
+    read_jitter: int | None = None,
 ) -> list[dict[str, Any]]:
     """Decode image files with a watermarked run's decoder and identify the ID of each (``mnerf extract
     --run WMRUN IMAGE...``): one record per image with the bits, the best-matching ID, its bit accuracy,
     the p-values (binomial and sign-flip, each also Bonferroni-corrected) and the decision ``id`` (−1: no
     watermark, i.e. the corrected p-value of ``test`` is not below ``threshold``; defaults: the run's
-    ``watermark.id_test`` and ``watermark.id_threshold``).
+    ``watermark.id_test`` and ``watermark.id_threshold``). ``read_jitter``: as in
+    :func:`evaluate_watermarked_run`.
 
     Only the run's keys, decoder and config are read (not its field checkpoint).
     """
-    from mnerf_jax import extract, read_window, wm_run
+    from mnerf_jax import extract, wm_run
     from mnerf_jax import run as runs
 
     keys, decoder = wm_run.load_keys_and_decoder(run_dir)
-    saved = runs.read_run_config(run_dir).watermark
+    saved = with_read_jitter(runs.read_run_config(run_dir).watermark, read_jitter)
     thr = float(saved.id_threshold if threshold is None else threshold)
     test = significance.check_test(saved.id_test if test is None else test)
     logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, batch_size,

@@ -48,9 +48,11 @@ def fingerprint_config(config: Config) -> Config:
     """The config with everything that does not change the embedding's trajectory normalised away."""
     # The time budget only decides where a run stops, not its trajectory: a stopped run may be resumed under
     # another budget (or none). Phase 3 comes after the field's trajectory, so a finished two-phase run may be
-    # resumed with one (embed.py refuses to run a second one).
+    # resumed with one (embed.py refuses to run a second one). How the renders are read (the decision rule,
+    # the jittered read) does not enter the embedding either.
     wm = dataclasses.replace(config.watermark, checkpoint_every=0, keep_checkpoints=0, id_threshold=0.0,
-                             id_test="binomial", time_budget_min=0.0, **PHASE3_DEFAULTS)  # fmt: skip
+                             id_test="binomial", read_jitter=0, time_budget_min=0.0,
+                             **PHASE3_DEFAULTS)  # fmt: skip
     return dataclasses.replace(config, train=TrainConfig(), watermark=wm)
 
 

@@ -290,7 +290,8 @@ def message_loss(
 def windowed(cfg: WatermarkConfig, images: jax.Array) -> jax.Array:
     """What the decoder reads of images ``[B, H, W, 3]``: the run's read window (``watermark.read_window``;
     after the augmentations, as a verifier reads an attacked image)."""
-    return read_window.read_window(images, *read_window.of_config(cfg))
+    fraction, background, _ = read_window.of_config(cfg)
+    return read_window.read_window(images, fraction, background)
 
 
 def make_image_loss(

@@ -406,6 +406,9 @@ def test_embedding_config_records_the_schedule_it_runs(tiny: TinyRuns) -> None:
         E.resolve_config(source, None, ["watermark.phase1_steps=0", "watermark.phase2_steps=0"], 2, 8)
     with pytest.raises(MnerfError, match="read_window"):
         E.resolve_config(source, None, ["watermark.read_window=1.5"], 2, 8)
+    for bad in (["watermark.read_jitter=-1", "watermark.read_window=0.7"], ["watermark.read_jitter=1"]):
+        with pytest.raises(MnerfError, match="read_jitter"):
+            E.resolve_config(source, None, bad, 2, 8)
 
 
 def test_resume_continues_exactly(tiny: TinyRuns) -> None:
@@ -414,7 +417,8 @@ def test_resume_continues_exactly(tiny: TinyRuns) -> None:
     # records; this costs the steps' compilation (the tiny run reads whole images).
     root = tiny.root
     overrides = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=78",
-                 "watermark.read_window=0.75", "watermark.read_background=-1"]  # fmt: skip
+                 "watermark.read_window=0.75", "watermark.read_background=-1",
+                 "watermark.read_jitter=1"]  # fmt: skip
     args = dict(overrides=overrides, decoder_path=tiny.decoder, progress=False)
     E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=3, **args)
     with pytest.raises(MnerfError, match="--resume"):
@@ -431,7 +435,7 @@ def test_resume_continues_exactly(tiny: TinyRuns) -> None:
     assert json.loads((root / "r_split" / "keys.json").read_text())["messages"] == json.loads(
         (root / "r_once" / "keys.json").read_text())["messages"]
     meta = decoder_io.load_decoder(root / "r_split" / "decoder.npz").metadata
-    assert (meta["read_window"], meta["read_background"]) == (0.75, -1.0)
+    assert (meta["read_window"], meta["read_background"], meta["read_jitter"]) == (0.75, -1.0, 1)
     assert a.config.watermark.read_window == 0.75
 
 

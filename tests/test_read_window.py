@@ -100,7 +100,53 @@ def test_decode_with_a_window_reads_the_cropped_image(make_decoder, tmp_path) ->
     cropped = extract.decode(loaded.variables, x[:, top : top + 32, left : left + 32], loaded.wavelet)
     np.testing.assert_allclose(np.asarray(windowed), np.asarray(cropped), atol=1e-5)
     meta = {"read_window": 0.72, "read_background": -1.0}
-    assert rw.of_metadata(meta) == (0.72, None) and rw.of_metadata({}) == (0.0, 1.0)
+    assert rw.of_metadata(meta) == (0.72, None, 0) and rw.of_metadata({}) == (0.0, 1.0, 0)
+    assert rw.of_metadata({**meta, "read_jitter": 2}) == (0.72, None, 2)
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(top=st.integers(0, SIDE - 12), left=st.integers(0, SIDE - 12), dy=st.integers(-30, 30),
+       dx=st.integers(-30, 30))  # fmt: skip
+def test_an_offset_moves_the_window_by_that_much_within_the_image(
+    top: int, left: int, dy: int, dx: int
+) -> None:
+    x = jnp.asarray(object_on_white(top, left))
+    origin = np.asarray(rw.window_origin(x, 24, 1.0))[0]
+    want = np.clip(origin + [dy, dx], 0, SIDE - 24)
+    moved = np.asarray(rw.read_window(x, 0.5, 1.0, jnp.asarray([[dy, dx]])))[0]
+    np.testing.assert_array_equal(moved, np.asarray(x)[0, want[0] : want[0] + 24, want[1] : want[1] + 24])
+
+
+def test_jitter_offsets_cover_the_square_once_centre_first() -> None:
+    for radius in range(4):
+        offsets = rw.jitter_offsets(radius)
+        assert offsets.shape == ((2 * radius + 1) ** 2, 2) and tuple(offsets[0]) == (0, 0)
+        assert len({tuple(o) for o in offsets}) == len(offsets) and np.abs(offsets).max(initial=0) == radius
+    with pytest.raises(MnerfError, match="radius"):
+        rw.jitter_offsets(-1)
+
+
+def test_a_jittered_read_is_the_mean_over_the_moved_windows(make_decoder, tmp_path) -> None:  # noqa: ANN001
+    """extract.decode with a jitter averages the decoder's logits over every moved window (checked against
+    the windows cut out by hand), radius 0 is the plain read, and a whole-image read ignores the jitter."""
+    from mnerf_jax import decoder_io, extract
+
+    loaded = decoder_io.load_decoder(make_decoder(tmp_path / "d.npz", 8))
+    x = np.concatenate([object_on_white(20, 4), object_on_white(3, 30)])
+    top_left = np.asarray(rw.window_origin(jnp.asarray(x), 32, 1.0))
+    by_hand = []
+    for dy, dx in rw.jitter_offsets(2):
+        o = np.clip(top_left + [dy, dx], 0, SIDE - 32)
+        crops = np.stack([im[a : a + 32, b : b + 32] for im, (a, b) in zip(x, o, strict=True)])
+        by_hand.append(np.asarray(extract.decode(loaded.variables, crops, loaded.wavelet)))
+    jittered = extract.decode(loaded.variables, x, loaded.wavelet, batch_size=4, window=32 / SIDE, jitter=2)
+    np.testing.assert_allclose(np.asarray(jittered), np.mean(by_hand, axis=0), atol=1e-5)
+    plain = extract.decode(loaded.variables, x, loaded.wavelet, window=32 / SIDE)
+    np.testing.assert_allclose(np.asarray(plain), by_hand[0], atol=1e-5)
+    assert not np.allclose(np.asarray(jittered), np.asarray(plain), atol=1e-4)
+    whole = extract.decode(loaded.variables, x, loaded.wavelet)
+    np.testing.assert_array_equal(np.asarray(extract.decode(loaded.variables, x, loaded.wavelet, jitter=2)),
+                                  np.asarray(whole))  # fmt: skip
 
 
 def test_extract_with_a_run_decoder_file_reads_its_recorded_window(make_decoder, tmp_path) -> None:  # noqa: ANN001
@@ -114,12 +160,20 @@ def test_extract_with_a_run_decoder_file_reads_its_recorded_window(make_decoder,
 
     plain = decoder_io.load_decoder(make_decoder(tmp_path / "plain.npz", 8))
     path = tmp_path / "run_decoder.npz"
-    decoder_io.save_decoder(path, plain.variables, {"read_window": 0.5, "read_background": 1.0})
+    decoder_io.save_decoder(path, plain.variables, {"read_window": 0.5, "read_background": 1.0,
+                                                     "read_jitter": 1})  # fmt: skip
     image = (object_on_white(30, 2)[0] * 255).astype(np.uint8)
     iio.imwrite(tmp_path / "view.png", image)
-    args = argparse.Namespace(images=[tmp_path / "view.png"], decoder=path, bits=None, batch=4)
+    args = argparse.Namespace(images=[tmp_path / "view.png"], decoder=path, bits=None, batch=4,
+                              read_jitter=None)  # fmt: skip
     records, _ = extract_cmd.extract_records(args)
-    want = extract.decode(plain.variables, image[None], plain.wavelet, window=0.5)[0]
-    np.testing.assert_allclose(records[0]["logits"], np.asarray(want), atol=1e-3)
+    want = extract.decode(plain.variables, image[None], plain.wavelet, window=0.5, jitter=1)[0]
+    # The records round logits to 4 decimals; this small random decoder's logits are ~1e-2.
+    np.testing.assert_allclose(records[0]["logits"], np.asarray(want), atol=6e-5)
+    centred = extract.decode(plain.variables, image[None], plain.wavelet, window=0.5)[0]
     whole = extract.decode(plain.variables, image[None], plain.wavelet)[0]
-    assert not np.allclose(np.asarray(want), np.asarray(whole), atol=1e-3)
+    for other in (centred, whole):
+        assert np.abs(np.asarray(want) - np.asarray(other)).max() > 1.5e-4
+    # --read-jitter overrides the file's jitter.
+    records, _ = extract_cmd.extract_records(argparse.Namespace(**{**vars(args), "read_jitter": 0}))
+    np.testing.assert_allclose(records[0]["logits"], np.asarray(centred), atol=6e-5)

@@ -96,9 +96,12 @@ def test_render_id_errors_are_one_line_and_write_nothing(tiny: TinyRuns, tmp_pat
 def test_evaluate_watermarked_run(tiny: TinyRuns, tmp_path: Path, mnerf) -> None:
     wm = tmp_path / "wm"  # a copy without earlier evaluations: the evaluation writes into the run
     shutil.copytree(tiny.wm, wm, ignore=shutil.ignore_patterns("eval-*"))
-    code, out, _ = mnerf("evaluate", "--run", wm, "--views", "2", "--quiet")
+    code, _, err = mnerf("evaluate", "--run", wm, "--views", "2", "--quiet", "--read-jitter", "-1")
+    assert code != 0 and "radius" in err and not (wm / "eval-test.json").exists()
+    code, out, _ = mnerf("evaluate", "--run", wm, "--views", "2", "--quiet", "--read-jitter", "1")
     assert code == 0
     saved = json.loads((wm / "eval-test.json").read_text())
+    assert saved["read_jitter"] == 1  # recorded (this tiny run reads whole images, which do not move)
     for key in EVAL_KEYS:
         assert key in saved, key
     assert saved["views"] == 2 and saved["num_ids"] == 2 and saved["bits"] == 8 and saved["split"] == "test"

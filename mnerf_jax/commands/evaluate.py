@@ -29,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--lpips", choices=("alex", "vgg"), default="alex", help="LPIPS network (default alex)"
     )
+    parser.add_argument("--read-jitter", type=int, default=None, metavar="R",
+                        help="watermarked runs: average the decoder's logits over the read windows moved by "
+                             "up to R pixels (default: the run's watermark.read_jitter)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -82,7 +85,7 @@ def evaluate_watermarked(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     result = wm_eval.evaluate_watermarked_run(
         args.run, args.split, args.data, max_views=args.views or None, lpips_net=args.lpips,
-        progress=not args.quiet,
+        progress=not args.quiet, read_jitter=args.read_jitter,
     )  # fmt: skip
     print(report.format_table(result))
     path = Path(args.run) / f"eval-{args.split}.json"

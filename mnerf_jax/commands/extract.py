@@ -37,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --run: the p-value that decides: binomial (matching bits) or sign_flip "
                              "(matching bits weighted by the decoder's confidence); both are printed "
                              "(default: the run's watermark.id_test, binomial unless set)")
+    parser.add_argument("--read-jitter", type=int, default=None, metavar="R",
+                        help="average the decoder's logits over the read windows moved by up to R pixels "
+                             "((2R + 1)² reads; default: as the run's decoder file records, 0 for others)")
     parser.add_argument("--batch", type=int, default=32, help="images per decoder call (32)")
     parser.add_argument("--json", action="store_true", help="one JSON object per image instead of text")
 
@@ -46,9 +49,12 @@ def extract_records(args: argparse.Namespace) -> tuple[list[dict], object]:
     from mnerf_jax import extract, read_window
 
     decoder = extract.resolve_decoder(args.decoder, args.bits)
-    # A watermarked run's decoder.npz records the run's read window; others read the whole image.
-    logits = extract.decode_paths(decoder.variables, args.images, decoder.wavelet, args.batch,
-                                  *read_window.of_metadata(decoder.metadata))  # fmt: skip
+    # A watermarked run's decoder.npz records the run's read window and jitter; others read the whole image.
+    window, background, jitter = read_window.of_metadata(decoder.metadata)
+    if args.read_jitter is not None:
+        jitter = read_window.check_jitter(args.read_jitter)
+    logits = extract.decode_paths(decoder.variables, args.images, decoder.wavelet, args.batch, window,
+                                  background, jitter)  # fmt: skip
     records = []
     for path, row in zip(args.images, logits, strict=True):
         records.append(
@@ -82,7 +88,8 @@ def run_identify(args: argparse.Namespace) -> int:
     if args.bits is not None:
         raise MnerfError("--bits applies to --decoder or the shipped decoders, not --run (the run's decoder "
                          "fixes the message length)")  # fmt: skip
-    records = wm_eval.identify_images(args.run, args.images, args.threshold, args.batch, args.test)
+    records = wm_eval.identify_images(args.run, args.images, args.threshold, args.batch, args.test,
+                                      args.read_jitter)  # fmt: skip
     if args.json:
         for record in records:
             print(json.dumps({**record, "run": str(args.run)}))
