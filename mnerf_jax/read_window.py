@@ -97,7 +97,17 @@ def read_window(
         return images
     origin = window_origin(images, side, background)
     if offsets is not None:
-        origin = jnp.clip(origin + jnp.asarray(offsets, jnp.int32), 0, jnp.asarray([h - side, w - side]))
+        origin = _moved(origin, jnp.asarray(offsets, jnp.int32), h, w, side)
+    return _cut(images, origin, side)
+
+
+def _moved(origin: jax.Array, offset: jax.Array, height: int, width: int, side: int) -> jax.Array:
+    """Window corners ``origin [B, 2]`` moved by ``offset`` (``[B, 2]`` or ``[2]``), kept inside the image."""
+    return jnp.clip(origin + offset, 0, jnp.asarray([height - side, width - side], jnp.int32))
+
+
+def _cut(images: jax.Array, origin: jax.Array, side: int) -> jax.Array:
+    """The ``side``-pixel squares ``[B, S, S, 3]`` of images ``[B, H, W, 3]`` at corners ``origin [B, 2]``."""
     return jax.vmap(lambda x, o: jax.lax.dynamic_slice(x, (o[0], o[1], 0), (side, side, 3)))(images, origin)
 
 
@@ -110,12 +120,16 @@ def jittered_logits(
 ) -> jax.Array:
     """Logits ``[B, L]`` of images ``[B, H, W, 3]`` averaged over the windows :func:`jitter_offsets` gives
     (``radius`` 0: the centred window alone). ``logits_of``: windows ``[B', S, S, 3]`` → logits ``[B', L]``,
-    given all ``(2r + 1)² · B`` windows in one batch."""
+    given all ``(2r + 1)² · B`` windows in one batch. The object's centre is found once per image."""
     offsets = jitter_offsets(radius)
+    h, w = images.shape[1:3]
+    if not fraction or window_side(h, w, fraction) == h == w:  # the whole image: every read is the same
+        return logits_of(images)
+    side = window_side(h, w, fraction)
     b = images.shape[0]
-    windows = jnp.concatenate([
-        read_window(images, fraction, background, jnp.broadcast_to(jnp.asarray(o), (b, 2))) for o in offsets
-    ])  # fmt: skip
+    origin = window_origin(images, side, background)
+    moved = [_moved(origin, jnp.asarray(o), h, w, side) for o in offsets]
+    windows = jnp.concatenate([_cut(images, corner, side) for corner in moved])
     return jnp.mean(logits_of(windows).reshape(len(offsets), b, -1), axis=0)
 
 
