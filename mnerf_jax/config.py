@@ -246,6 +246,11 @@ class WatermarkConfig:
     # smaller batches read more on lego (4,000 x 16 against 2,000 x 32: 98.3 against 97.0 % bits on 50 test
     # views; configs/embed_cpu_quality.toml sets 16).
     phase3_batch: int = 32
+    # Phase 3's weight of BCE(decoder(unwatermarked image), ½) (its negatives; 0: none). Phase 2's weight is
+    # lambda_clean. A decoder refitted longer claims more clean renders: lego 1/8, 16 IDs, 9,000 steps of 16,
+    # 200 test views (one H100 run each): 3.5 % of the clean renders named at 0.3, 1.0 % at 1, none at 3,
+    # the renders named 97.2, 97.2 and 96.6 % (docs/findings.md, "Phase 3's negatives").
+    phase3_lambda_clean: float = 0.3
     phase3_reserve_min: float = 0.0
     keep_checkpoints: int = 2
     # Wall-clock budget of `mnerf embed` in minutes (0: off). On: the run stops before a step that, with the

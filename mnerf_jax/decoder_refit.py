@@ -5,10 +5,10 @@ fixed, every training view rendered with every ID is a labelled set of exactly t
 given, and a decoder step on it costs a fraction of a field step (no render, no back-propagation into the
 field). Phase 3 renders that set once (``watermark.phase3_views`` more views around the training cameras on
 object-centred scenes), then trains the decoder's weights alone on it: the message BCE and the key term of
-phase 2 on every render, and ``lambda_clean`` · BCE against ½ on unwatermarked images (the training views'
-photographs, and the clean model's renders of every view used); half of each batch is rounded to 8 bits as
-a saved PNG is, and the run's phase-2 augmentations apply when it has them. The field, and so the PSNR, does
-not change. Measured on lego: docs/findings.md, "The decoder refitted on the finished field".
+phase 2 on every render, and ``phase3_lambda_clean`` · BCE against ½ on unwatermarked images (the training
+views' photographs, and the clean model's renders of every view used); half of each batch is rounded to 8
+bits as a saved PNG is, and the run's phase-2 augmentations apply when it has them. The field, and so the
+PSNR, does not change. Measured on lego: docs/findings.md, "The decoder refitted on the finished field".
 """
 
 from __future__ import annotations
@@ -147,7 +147,7 @@ def make_refit_step(
     (``augment_prob > 0``); then the read window, LL2 and the decoder (eval-mode BatchNorm, as phase 2).
     """
     batch = int(cfg.phase3_batch)
-    n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.lambda_clean else 0
+    n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.phase3_lambda_clean else 0
     window, background, _ = read_window.of_config(cfg)  # phase 3 trains on the centred window (findings)
     tx = refit_optimizer(cfg)
 
@@ -169,8 +169,9 @@ def make_refit_step(
         n_ids, n_views = data.renders.shape[:2]
         ids = jax.random.randint(k_id, (batch,), 0, n_ids)
         seen = prepare(k_pos, data.renders[ids, jax.random.randint(k_view, (batch,), 0, n_views)])
-        negatives = data.negatives[jax.random.randint(k_neg, (n_neg,), 0, data.negatives.shape[0])]
-        clean = prepare(k_clean, negatives)
+        if n_neg:  # an empty batch would reach the augmentations' convolutions (a zero group count)
+            negatives = data.negatives[jax.random.randint(k_neg, (n_neg,), 0, data.negatives.shape[0])]
+            clean = prepare(k_clean, negatives)
         messages = data.messages.astype(jnp.float32)
 
         def loss_fn(p: PyTree) -> jax.Array:
@@ -180,7 +181,8 @@ def make_refit_step(
                 loss = loss + cfg.lambda_key * losses.key_cross_entropy(z, messages, ids, cfg.bce_temperature)
             if n_neg:
                 z_clean = logits_of(p, clean)
-                loss = loss + cfg.lambda_clean * losses.bce_with_logits(z_clean, 0.5, cfg.bce_temperature)
+                clean_bce = losses.bce_with_logits(z_clean, 0.5, cfg.bce_temperature)
+                loss = loss + cfg.phase3_lambda_clean * clean_bce
             return loss
 
         loss, grads = jax.value_and_grad(loss_fn)(params)

@@ -108,11 +108,12 @@ def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
     if not cfg.time_budget_min >= 0:
         raise WatermarkError(f"watermark.time_budget_min must be ≥ 0 (0: off), got {cfg.time_budget_min}")
     if min(cfg.phase3_steps, cfg.phase3_views) < 0 or cfg.phase3_batch < 1 or not cfg.phase3_lr > 0 \
-            or not cfg.phase3_reserve_min >= 0:
+            or not cfg.phase3_reserve_min >= 0 or not cfg.phase3_lambda_clean >= 0:
         raise WatermarkError("watermark.phase3_steps and phase3_views must be ≥ 0 (0 steps: no phase 3), "
-                             "phase3_batch ≥ 1, phase3_lr > 0 and phase3_reserve_min ≥ 0; got "
-                             f"{cfg.phase3_steps}, {cfg.phase3_views}, {cfg.phase3_batch}, {cfg.phase3_lr}, "
-                             f"{cfg.phase3_reserve_min}")  # fmt: skip
+                             "phase3_batch ≥ 1, phase3_lr > 0, phase3_reserve_min ≥ 0 and "
+                             f"phase3_lambda_clean ≥ 0; got {cfg.phase3_steps}, {cfg.phase3_views}, "
+                             f"{cfg.phase3_batch}, {cfg.phase3_lr}, {cfg.phase3_reserve_min}, "
+                             f"{cfg.phase3_lambda_clean}")  # fmt: skip
     if cfg.clean_negative not in CLEAN_NEGATIVES:
         raise WatermarkError(f"watermark.clean_negative must be one of {', '.join(CLEAN_NEGATIVES)}, got "
                              f"{cfg.clean_negative!r}")  # fmt: skip

@@ -71,7 +71,7 @@ def total_steps(cfg: WatermarkConfig) -> int:
 _HOST_ONLY_FIELDS = (
     "min_hamming", "key_seed", "checkpoint_every", "seed", "id_threshold", "id_test", "keep_checkpoints",
     "time_budget_min", "phase1_steps", "phase2_steps", "fidelity_psnr_start", "fidelity_ramp",
-    "phase3_steps", "phase3_views", "phase3_lr", "phase3_batch", "phase3_reserve_min",
+    "phase3_steps", "phase3_views", "phase3_lr", "phase3_batch", "phase3_lambda_clean", "phase3_reserve_min",
 )  # fmt: skip
 
 

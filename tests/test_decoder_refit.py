@@ -110,6 +110,25 @@ def test_the_refit_decoder_learns_the_ids_keys_and_is_deterministic() -> None:
     assert metrics["steps"] == 5
 
 
+def test_phase_three_weighs_its_negatives_by_its_own_weight_not_phase_twos() -> None:
+    # The loss of one refit step is linear in phase3_lambda_clean (the negatives' BCE against ½, at least
+    # log 2 a bit), and phase 2's lambda_clean does not enter it.
+    data, variables = _two_class_set()
+    arrays = jax.tree.map(jax.numpy.asarray, data)
+
+    def loss(**weights: float) -> float:
+        cfg = WatermarkConfig(phase3_steps=10, phase3_batch=8, augment_prob=0.0, **weights)  # fast to compile
+        step = decoder_refit.make_refit_step(cfg, variables)
+        opt_state = decoder_refit.refit_optimizer(cfg).init(variables["params"])
+        return float(step(variables["params"], opt_state, jax.random.key(5), arrays)[2])
+
+    none = loss(phase3_lambda_clean=0.0, lambda_clean=5.0)
+    one = loss(phase3_lambda_clean=1.0, lambda_clean=0.0)
+    two = loss(phase3_lambda_clean=2.0, lambda_clean=5.0)
+    assert one - none >= np.log(2.0) - 1e-4
+    assert two - none == pytest.approx(2.0 * (one - none), rel=1e-4)
+
+
 def test_the_refit_schedule_warms_up_then_decays_to_zero() -> None:
     schedule = decoder_refit.refit_schedule(WatermarkConfig(phase3_steps=1000, phase3_lr=1e-3))
     assert float(schedule(0)) == 0.0
@@ -132,7 +151,7 @@ def test_phase_three_settings_are_checked() -> None:
     from mnerf_jax.watermark import WatermarkError, check_config
 
     for bad in ({"phase3_steps": -1}, {"phase3_views": -2}, {"phase3_batch": 0}, {"phase3_lr": 0.0},
-                {"phase3_reserve_min": -1.0}):  # fmt: skip
+                {"phase3_reserve_min": -1.0}, {"phase3_lambda_clean": -0.1}):  # fmt: skip
         with pytest.raises(WatermarkError, match="phase3"):
             check_config(WatermarkConfig(**bad))
 

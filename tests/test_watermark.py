@@ -208,22 +208,23 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_one_patch_a_ramp_no_attac
     assert dataclasses.replace(
         cfg, fidelity_psnr=0.0, fidelity_psnr_start=0.0, fidelity_ramp=(0.0, 0.0), augment_prob=0.75,
         patch_size=64, phase2_steps=2600, phase3_steps=0, phase3_views=0, phase3_reserve_min=0.0,
-        phase3_batch=32, read_jitter=0,
+        phase3_batch=32, phase3_lambda_clean=0.3, read_jitter=0,
     ) == base  # fmt: skip
     assert cfg.augment_prob == 0.0
     # One patch covers a lego 1/8 view (100 px): the deferred path's single-render branch.
     assert patch_layout(100, 100, cfg.patch_size).num_patches == 1
-    # 20 dB until 35 % of the field's 3,400 steps, 41.5 dB from 60 % on.
+    # 20 dB until 35 % of the field's 2,700 steps, 41.5 dB from 60 % on.
     total = sum(W.phase_steps(cfg, num_ids=16))
-    assert total == 3400
-    budget = [float(fidelity_budget_db(cfg, step, total)) for step in (0, 1190, 2040, 3399)]
+    assert total == 2700
+    budget = [float(fidelity_budget_db(cfg, step, total)) for step in (0, 945, 1620, 2699)]
     assert budget == pytest.approx([20.0, 20.0, 41.5, 41.5], abs=1e-4)
-    assert 20.0 < float(fidelity_budget_db(cfg, 1600, total)) < 41.5
-    # Then the decoder alone: 3,000 steps of 16 renders on the training views and 200 novel views, with 10
-    # of the 60 minutes kept for it; renders are read over the 9 windows within a pixel.
-    phase3 = (cfg.phase3_steps, cfg.phase3_batch, cfg.phase3_views, cfg.phase3_reserve_min,
-              cfg.time_budget_min)
-    assert phase3 == (3000, 16, 200, 10, 60) and cfg.read_jitter == 1
+    assert 20.0 < float(fidelity_budget_db(cfg, 1300, total)) < 41.5
+    # Then the decoder alone: 8,000 steps of 16 renders on the training views and 200 novel views, its
+    # negatives weighed 3, with 19 of the 60 minutes kept for it; renders are read over the 9 windows within
+    # a pixel.
+    phase3 = (cfg.phase3_steps, cfg.phase3_batch, cfg.phase3_views, cfg.phase3_lambda_clean,
+              cfg.phase3_reserve_min, cfg.time_budget_min)
+    assert phase3 == (8000, 16, 200, 3.0, 19, 60) and cfg.read_jitter == 1
 
 
 def test_watermark_grid_follows_upsampling_and_shrinking() -> None:
