@@ -312,7 +312,8 @@ def check_phase3_unchanged(meta: dict[str, Any], config: Config, out: Path) -> N
     settings than ``config``'s: a run's decoder is refitted once."""
     if int(meta["step"]) <= total_steps(config.watermark):
         return
-    ran = {k: meta["config"]["watermark"].get(k) for k in wm_run.PHASE3_DEFAULTS}
+    # A key the run's version did not have ran at its default (phase3_lambda_clean came later).
+    ran = {k: meta["config"]["watermark"].get(k, d) for k, d in wm_run.PHASE3_DEFAULTS.items()}
     now = {k: getattr(config.watermark, k) for k in wm_run.PHASE3_DEFAULTS}
     if ran != now:
         raise EmbedError(f"{out} has finished its phase 3 (step {meta['step']}) with {ran}, not {now}; "

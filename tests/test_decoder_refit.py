@@ -129,6 +129,20 @@ def test_phase_three_weighs_its_negatives_by_its_own_weight_not_phase_twos() -> 
     assert two - none == pytest.approx(2.0 * (one - none), rel=1e-4)
 
 
+def test_a_run_from_before_a_phase_3_setting_existed_counts_it_at_its_default(tmp_path) -> None:
+    # A finished run whose config.json predates phase3_lambda_clean ran it at its default: resuming it under
+    # the same settings is the no-op, not a refusal; another phase-3 setting is still refused.
+    from mnerf_jax.config import Config
+
+    wm = WatermarkConfig(phase1_steps=2, phase2_steps=3, phase3_steps=4)
+    saved = {k: getattr(wm, k) for k in wm_run.PHASE3_DEFAULTS if k != "phase3_lambda_clean"}
+    meta = {"step": 9, "config": {"watermark": saved}}
+    E.check_phase3_unchanged(meta, Config(watermark=wm), tmp_path)
+    with pytest.raises(MnerfError, match="phase 3"):
+        E.check_phase3_unchanged(meta, Config(watermark=dataclasses.replace(wm, phase3_lambda_clean=3.0)),
+                                 tmp_path)  # fmt: skip
+
+
 def test_the_refit_schedule_warms_up_then_decays_to_zero() -> None:
     schedule = decoder_refit.refit_schedule(WatermarkConfig(phase3_steps=1000, phase3_lr=1e-3))
     assert float(schedule(0)) == 0.0
