@@ -220,11 +220,11 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_one_patch_a_ramp_no_attac
     assert budget == pytest.approx([20.0, 20.0, 41.5, 41.5], abs=1e-4)
     assert 20.0 < float(fidelity_budget_db(cfg, 1300, total)) < 41.5
     # Then the decoder alone: 8,000 steps of 16 renders on the training views and 200 novel views, its
-    # negatives weighed 3, with 19 of the 60 minutes kept for it; renders are read over the 9 windows within
+    # negatives weighed 1, with 19 of the 60 minutes kept for it; renders are read over the 9 windows within
     # a pixel.
     phase3 = (cfg.phase3_steps, cfg.phase3_batch, cfg.phase3_views, cfg.phase3_lambda_clean,
               cfg.phase3_reserve_min, cfg.time_budget_min)
-    assert phase3 == (8000, 16, 200, 3.0, 19, 60) and cfg.read_jitter == 1
+    assert phase3 == (8000, 16, 200, 1.0, 19, 60) and cfg.read_jitter == 1
 
 
 def test_watermark_grid_follows_upsampling_and_shrinking() -> None:
