@@ -249,8 +249,8 @@ class WatermarkConfig:
     # Phase 3's weight of BCE(decoder(unwatermarked image), ½) (its negatives; 0: none). Phase 2's weight is
     # lambda_clean. A decoder refitted longer claims more clean renders: lego 1/8, 16 IDs, 9,000 steps of 16,
     # 200 test views (one H100 run each): 3.5 % of the clean renders named at 0.3, 1.0 % at 1, none at 3,
-    # the renders named 97.2, 97.2 and 96.6 %; on the CPU (6,000 steps, one draw each) 94.75 % at 0.3 and
-    # 87.9 % at 3, 1 of 200 clean renders claimed at either (docs/findings.md, "Phase 3's negatives").
+    # the renders named 97.2, 97.2 and 96.6 %; on the CPU (6,000 steps, one draw each) 94.75 % at 0.3, 93.6 %
+    # at 1 and 87.9 % at 3, 1 / 0 / 1 of 200 clean renders claimed (docs/findings.md, "Phase 3's negatives").
     phase3_lambda_clean: float = 0.3
     phase3_reserve_min: float = 0.0
     keep_checkpoints: int = 2

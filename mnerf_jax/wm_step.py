@@ -23,7 +23,7 @@ from mnerf_jax import decoder as decoder_lib
 from mnerf_jax import metrics as metrics_lib
 from mnerf_jax.config import ModelConfig, WatermarkConfig
 from mnerf_jax.deferred import PyTree, RenderFn, deferred_grad
-from mnerf_jax.wm_run import EmbedError
+from mnerf_jax.wm_run import PHASE3_DEFAULTS, EmbedError
 
 
 @flax.struct.dataclass
@@ -66,12 +66,13 @@ def total_steps(cfg: WatermarkConfig) -> int:
 
 
 # Fields of WatermarkConfig that only the host loop reads (which step is in which phase, keys, seeds,
-# checkpoints, identification, the time budget). The learning-rate decay's length is an argument of the
-# compiled step, so the schedule can be sized after its steps are timed (embed_budget.py).
+# checkpoints, identification, the time budget, and every phase-3 setting: phase 3 has its own step). The
+# learning-rate decay's length is an argument of the compiled step, so the schedule can be sized after its
+# steps are timed (embed_budget.py).
 _HOST_ONLY_FIELDS = (
     "min_hamming", "key_seed", "checkpoint_every", "seed", "id_threshold", "id_test", "keep_checkpoints",
     "time_budget_min", "phase1_steps", "phase2_steps", "fidelity_psnr_start", "fidelity_ramp",
-    "phase3_steps", "phase3_views", "phase3_lr", "phase3_batch", "phase3_lambda_clean", "phase3_reserve_min",
+    *PHASE3_DEFAULTS,
 )  # fmt: skip
 
 
