@@ -241,6 +241,12 @@ class WatermarkConfig:
     # phase3_reserve_min minutes of it for phase 3, which itself stops when the budget is spent.
     phase3_steps: int = 0
     phase3_views: int = 0
+    # How the novel views are spread (decoder_refit.novel_cameras): "angles", uniform in azimuth and elevation
+    # between the training cameras' lowest and highest elevation; "sphere", uniform over the sphere's area
+    # there, the density NeRF-Synthetic's cameras are drawn with (more views near the horizon, fewer near the
+    # pole). phase3_elevation_margin: degrees the range reaches past the training cameras' on either side.
+    phase3_view_density: str = "angles"
+    phase3_elevation_margin: float = 0.0
     phase3_lr: float = 1e-3
     # Renders per phase-3 step (and a quarter as many negatives). At the same number of renders seen, more and
     # smaller batches read more on lego (4,000 x 16 against 2,000 x 32: 98.3 against 97.0 % bits on 50 test

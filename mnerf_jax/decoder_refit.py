@@ -51,10 +51,14 @@ class RefitSet:
     negatives: Any
 
 
-def novel_cameras(cameras: Cameras, count: int, seed: int) -> Cameras:
-    """``count`` cameras around object-centred ``cameras``: uniform azimuth, elevation and distance within the
-    ranges of the given cameras, looking at their focus point (``trajectory.focus_point``), with the first
-    camera's intrinsics. Raises ValueError for forward-facing (NDC) cameras, where such poses leave the scene.
+def novel_cameras(cameras: Cameras, count: int, seed: int, density: str = "angles",
+                  margin_deg: float = 0.0) -> Cameras:  # fmt: skip
+    """``count`` cameras around object-centred ``cameras``, looking at their focus point
+    (``trajectory.focus_point``), with the first camera's intrinsics: azimuth uniform, distance uniform within
+    the given cameras' range, elevation within theirs widened by ``margin_deg`` degrees on either side
+    (clipped to ±90°). ``density`` "angles": elevation uniform; "sphere": uniform over the sphere's area,
+    i.e. sin(elevation) uniform (how NeRF-Synthetic's cameras are drawn, more views near the horizon).
+    Raises ValueError for forward-facing (NDC) cameras, where such poses leave the scene.
     """
     if cameras.ndc is not None:
         raise ValueError("novel views around the cameras need an object-centred scene, not a forward-facing "
@@ -69,7 +73,14 @@ def novel_cameras(cameras: Cameras, count: int, seed: int) -> Cameras:
     e2 = np.cross(axis, e1)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x3F]))
     theta = rng.uniform(0.0, 2.0 * math.pi, count)
-    elev = rng.uniform(elevation.min(), elevation.max(), count)
+    margin = math.radians(margin_deg)
+    low, high = max(elevation.min() - margin, -math.pi / 2), min(elevation.max() + margin, math.pi / 2)
+    if density == "sphere":
+        elev = np.arcsin(rng.uniform(math.sin(low), math.sin(high), count))
+    elif density == "angles":
+        elev = rng.uniform(low, high, count)
+    else:
+        raise ValueError(f"unknown view density {density!r}")
     dist = rng.uniform(radius.min(), radius.max(), count)
     ring = np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2
     pos = centre + dist[:, None] * (np.cos(elev)[:, None] * ring + np.sin(elev)[:, None] * axis)
@@ -103,7 +114,8 @@ def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_tr
     keys = run.extras["keys"]
     sets = [cameras]
     if cfg.phase3_views:
-        sets.append(novel_cameras(cameras, int(cfg.phase3_views), int(cfg.seed)))
+        sets.append(novel_cameras(cameras, int(cfg.phase3_views), int(cfg.seed), cfg.phase3_view_density,
+                                  cfg.phase3_elevation_margin))  # fmt: skip
     views = sum(len(c) for c in sets)
     bar = tqdm(total=views * keys.num_ids, disable=not progress, desc="embed phase 3 (renders)",
                unit="render", dynamic_ncols=True)  # fmt: skip

@@ -55,6 +55,7 @@ from mnerf_jax.render import FieldFns, TensorfDensity
 Array = jax.Array
 Params = dict
 
+PHASE3_VIEW_DENSITIES = ("angles", "sphere")  # decoder_refit.novel_cameras
 VARIANTS = ("multinerf", "no_grid", "no_film", "frozen_geometry", "early", "waterf", "waterf_mod")
 _GRID_VARIANTS = ("multinerf", "no_film", "frozen_geometry", "early")
 _FILM_VARIANTS = ("multinerf", "no_grid", "frozen_geometry", "early")
@@ -114,6 +115,10 @@ def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
                              f"phase3_lambda_clean ≥ 0; got {cfg.phase3_steps}, {cfg.phase3_views}, "
                              f"{cfg.phase3_batch}, {cfg.phase3_lr}, {cfg.phase3_reserve_min}, "
                              f"{cfg.phase3_lambda_clean}")  # fmt: skip
+    if cfg.phase3_view_density not in PHASE3_VIEW_DENSITIES or not 0 <= cfg.phase3_elevation_margin <= 90:
+        raise WatermarkError(f"watermark.phase3_view_density must be one of {PHASE3_VIEW_DENSITIES} and "
+                             "phase3_elevation_margin within [0, 90] degrees; got "
+                             f"{cfg.phase3_view_density!r}, {cfg.phase3_elevation_margin}")  # fmt: skip
     if cfg.clean_negative not in CLEAN_NEGATIVES:
         raise WatermarkError(f"watermark.clean_negative must be one of {', '.join(CLEAN_NEGATIVES)}, got "
                              f"{cfg.clean_negative!r}")  # fmt: skip

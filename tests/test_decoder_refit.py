@@ -41,10 +41,13 @@ def _ring_cameras(n: int = 12) -> Cameras:
 
 
 @settings(max_examples=20, deadline=None)
-@given(count=st.integers(0, 30), seed=st.integers(0, 2**31 - 1))
-def test_novel_views_stay_within_the_cameras_ranges_and_look_at_their_focus(count: int, seed: int) -> None:
+@given(count=st.integers(0, 30), seed=st.integers(0, 2**31 - 1),
+       density=st.sampled_from(["angles", "sphere"]), margin=st.sampled_from([0.0, 5.0, 45.0]))  # fmt: skip
+def test_novel_views_stay_within_the_cameras_ranges_and_look_at_their_focus(
+    count: int, seed: int, density: str, margin: float
+) -> None:
     cams = _ring_cameras()
-    novel = decoder_refit.novel_cameras(cams, count, seed)
+    novel = decoder_refit.novel_cameras(cams, count, seed, density, margin)
     assert len(novel) == count and (novel.width, novel.height) == (cams.width, cams.height)
     if not count:
         return
@@ -55,14 +58,40 @@ def test_novel_views_stay_within_the_cameras_ranges_and_look_at_their_focus(coun
     given_dist = np.linalg.norm(given_pos, axis=-1)
     given_elev = np.degrees(np.arcsin(given_pos[:, 2] / given_dist))
     assert given_dist.min() - 1e-4 <= dist.min() and dist.max() <= given_dist.max() + 1e-4
-    assert given_elev.min() - 1e-3 <= elev.min() and elev.max() <= given_elev.max() + 1e-3
+    low, high = max(given_elev.min() - margin, -90.0), min(given_elev.max() + margin, 90.0)
+    assert low - 1e-3 <= elev.min() and elev.max() <= high + 1e-3
     # Every camera looks at the origin (-z axis towards it) with no roll (x axis horizontal).
     forward = -novel.c2w[:, :, 2]
     np.testing.assert_allclose(np.sum(forward * (-pos / dist[:, None]), -1), 1.0, atol=1e-4)
     np.testing.assert_allclose(novel.c2w[:, 2, 0], 0.0, atol=1e-4)
-    again = decoder_refit.novel_cameras(cams, count, seed)
+    again = decoder_refit.novel_cameras(cams, count, seed, density, margin)
     np.testing.assert_array_equal(novel.c2w, again.c2w)
     np.testing.assert_allclose(novel.fx, cams.fx[0])
+
+
+def test_novel_views_spread_uniformly_in_elevation_or_over_the_spheres_area() -> None:
+    # 4,000 views around cameras at 10-60° elevation: "angles" spreads the elevation uniformly, "sphere" its
+    # sine (equal areas of the sphere get equal views, so more lie near the horizon); a margin widens the
+    # range on both sides.
+    cams = _ring_cameras(200)
+    pos = cams.c2w[:, :, 3].astype(np.float64)
+    given = np.arcsin(pos[:, 2] / np.linalg.norm(pos, axis=-1))
+    quartiles = np.array([0.25, 0.5, 0.75])
+
+    def elevations(density: str, margin: float) -> np.ndarray:
+        p = decoder_refit.novel_cameras(cams, 4000, 3, density, margin).c2w[:, :, 3].astype(np.float64)
+        return np.arcsin(p[:, 2] / np.linalg.norm(p, axis=-1))
+
+    for margin in (0.0, 5.0):
+        low, high = given.min() - np.radians(margin), given.max() + np.radians(margin)
+        flat = elevations("angles", margin)
+        np.testing.assert_allclose(np.quantile(flat, quartiles), low + quartiles * (high - low), atol=0.02)
+        area = np.sin(elevations("sphere", margin))
+        expected = np.sin(low) + quartiles * (np.sin(high) - np.sin(low))
+        np.testing.assert_allclose(np.quantile(area, quartiles), expected, atol=0.02)
+        assert np.median(elevations("sphere", margin)) < np.median(flat) - 0.05  # nearer the horizon
+    with pytest.raises(ValueError, match="density"):
+        decoder_refit.novel_cameras(cams, 3, 0, "cube")
 
 
 def test_novel_views_refuse_forward_facing_cameras() -> None:
@@ -165,7 +194,8 @@ def test_phase_three_settings_are_checked() -> None:
     from mnerf_jax.watermark import WatermarkError, check_config
 
     for bad in ({"phase3_steps": -1}, {"phase3_views": -2}, {"phase3_batch": 0}, {"phase3_lr": 0.0},
-                {"phase3_reserve_min": -1.0}, {"phase3_lambda_clean": -0.1}):  # fmt: skip
+                {"phase3_reserve_min": -1.0}, {"phase3_lambda_clean": -0.1}, {"phase3_view_density": "cube"},
+                {"phase3_elevation_margin": -1.0}, {"phase3_elevation_margin": 91.0}):  # fmt: skip
         with pytest.raises(WatermarkError, match="phase3"):
             check_config(WatermarkConfig(**bad))
 

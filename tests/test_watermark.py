@@ -208,7 +208,8 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_one_patch_a_ramp_no_attac
     assert dataclasses.replace(
         cfg, fidelity_psnr=0.0, fidelity_psnr_start=0.0, fidelity_ramp=(0.0, 0.0), augment_prob=0.75,
         patch_size=64, phase2_steps=2600, phase3_steps=0, phase3_views=0, phase3_reserve_min=0.0,
-        phase3_batch=32, phase3_lambda_clean=0.3, read_jitter=0,
+        phase3_batch=32, phase3_lambda_clean=0.3, read_jitter=0, phase3_view_density="angles",
+        phase3_elevation_margin=0.0,
     ) == base  # fmt: skip
     assert cfg.augment_prob == 0.0
     # One patch covers a lego 1/8 view (100 px): the deferred path's single-render branch.
@@ -220,11 +221,12 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_one_patch_a_ramp_no_attac
     assert budget == pytest.approx([20.0, 20.0, 41.5, 41.5], abs=1e-4)
     assert 20.0 < float(fidelity_budget_db(cfg, 1300, total)) < 41.5
     # Then the decoder alone: 8,000 steps of 16 renders on the training views and 200 novel views, its
-    # negatives weighed 1, with 19 of the 60 minutes kept for it; renders are read over the 9 windows within
-    # a pixel.
+    # negatives weighed 1, with 19 of the 60 minutes kept for it; the novel views spread over the sphere's
+    # area 5° past the training cameras' elevations; renders are read over the 9 windows within a pixel.
     phase3 = (cfg.phase3_steps, cfg.phase3_batch, cfg.phase3_views, cfg.phase3_lambda_clean,
-              cfg.phase3_reserve_min, cfg.time_budget_min)
-    assert phase3 == (8000, 16, 200, 1.0, 19, 60) and cfg.read_jitter == 1
+              cfg.phase3_reserve_min, cfg.time_budget_min, cfg.phase3_view_density,
+              cfg.phase3_elevation_margin)
+    assert phase3 == (8000, 16, 200, 1.0, 19, 60, "sphere", 5.0) and cfg.read_jitter == 1
 
 
 def test_watermark_grid_follows_upsampling_and_shrinking() -> None:
