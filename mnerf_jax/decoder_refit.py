@@ -34,6 +34,22 @@ PyTree = Any
 # A batch holds phase3_batch renders and a quarter as many unwatermarked images (8 per 32, as in the sweep of
 # docs/findings.md, "The decoder refitted on the finished field").
 NEGATIVES_PER_BATCH_DIVISOR = 4
+VIEW_DENSITIES = ("angles", "sphere")  # novel_cameras' spreads of the elevation
+
+
+def settings_problem(cfg: WatermarkConfig) -> str | None:
+    """What is wrong with ``cfg``'s phase-3 settings, in one line, or None (``watermark.check_config``
+    raises it)."""
+    if min(cfg.phase3_steps, cfg.phase3_views) < 0 or cfg.phase3_batch < 1 or not cfg.phase3_lr > 0 \
+            or not cfg.phase3_reserve_min >= 0 or not cfg.phase3_lambda_clean >= 0:
+        return ("watermark.phase3_steps and phase3_views must be ≥ 0 (0 steps: no phase 3), "
+                "phase3_batch ≥ 1, phase3_lr > 0, phase3_reserve_min ≥ 0 and phase3_lambda_clean ≥ 0; got "
+                f"{cfg.phase3_steps}, {cfg.phase3_views}, {cfg.phase3_batch}, {cfg.phase3_lr}, "
+                f"{cfg.phase3_reserve_min}, {cfg.phase3_lambda_clean}")  # fmt: skip
+    if cfg.phase3_view_density not in VIEW_DENSITIES or not 0 <= cfg.phase3_elevation_margin <= 90:
+        return (f"watermark.phase3_view_density must be one of {VIEW_DENSITIES} and phase3_elevation_margin "
+                f"within [0, 90] degrees; got {cfg.phase3_view_density!r}, {cfg.phase3_elevation_margin}")
+    return None
 
 
 @flax.struct.dataclass
@@ -80,7 +96,7 @@ def novel_cameras(cameras: Cameras, count: int, seed: int, density: str = "angle
     elif density == "angles":
         elev = rng.uniform(low, high, count)
     else:
-        raise ValueError(f"unknown view density {density!r}")
+        raise ValueError(f"unknown view density {density!r} (known: {VIEW_DENSITIES})")
     dist = rng.uniform(radius.min(), radius.max(), count)
     ring = np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2
     pos = centre + dist[:, None] * (np.cos(elev)[:, None] * ring + np.sin(elev)[:, None] * axis)

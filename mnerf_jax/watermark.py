@@ -47,7 +47,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from mnerf_jax import field, grids, significance
+from mnerf_jax import decoder_refit, field, grids, significance
 from mnerf_jax.config import ModelConfig, WatermarkConfig
 from mnerf_jax.errors import MnerfError
 from mnerf_jax.render import FieldFns, TensorfDensity
@@ -55,7 +55,6 @@ from mnerf_jax.render import FieldFns, TensorfDensity
 Array = jax.Array
 Params = dict
 
-PHASE3_VIEW_DENSITIES = ("angles", "sphere")  # decoder_refit.novel_cameras
 VARIANTS = ("multinerf", "no_grid", "no_film", "frozen_geometry", "early", "waterf", "waterf_mod")
 _GRID_VARIANTS = ("multinerf", "no_film", "frozen_geometry", "early")
 _FILM_VARIANTS = ("multinerf", "no_grid", "frozen_geometry", "early")
@@ -108,17 +107,8 @@ def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
                              f"{cfg.id_test!r}")  # fmt: skip
     if not cfg.time_budget_min >= 0:
         raise WatermarkError(f"watermark.time_budget_min must be ≥ 0 (0: off), got {cfg.time_budget_min}")
-    if min(cfg.phase3_steps, cfg.phase3_views) < 0 or cfg.phase3_batch < 1 or not cfg.phase3_lr > 0 \
-            or not cfg.phase3_reserve_min >= 0 or not cfg.phase3_lambda_clean >= 0:
-        raise WatermarkError("watermark.phase3_steps and phase3_views must be ≥ 0 (0 steps: no phase 3), "
-                             "phase3_batch ≥ 1, phase3_lr > 0, phase3_reserve_min ≥ 0 and "
-                             f"phase3_lambda_clean ≥ 0; got {cfg.phase3_steps}, {cfg.phase3_views}, "
-                             f"{cfg.phase3_batch}, {cfg.phase3_lr}, {cfg.phase3_reserve_min}, "
-                             f"{cfg.phase3_lambda_clean}")  # fmt: skip
-    if cfg.phase3_view_density not in PHASE3_VIEW_DENSITIES or not 0 <= cfg.phase3_elevation_margin <= 90:
-        raise WatermarkError(f"watermark.phase3_view_density must be one of {PHASE3_VIEW_DENSITIES} and "
-                             "phase3_elevation_margin within [0, 90] degrees; got "
-                             f"{cfg.phase3_view_density!r}, {cfg.phase3_elevation_margin}")  # fmt: skip
+    if (problem := decoder_refit.settings_problem(cfg)) is not None:
+        raise WatermarkError(problem)
     if cfg.clean_negative not in CLEAN_NEGATIVES:
         raise WatermarkError(f"watermark.clean_negative must be one of {', '.join(CLEAN_NEGATIVES)}, got "
                              f"{cfg.clean_negative!r}")  # fmt: skip
