@@ -14,6 +14,7 @@ PSNR, does not change. Measured on lego: docs/findings.md, "The decoder refitted
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -151,24 +152,43 @@ def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_tr
     return RefitSet(renders.astype(np.float32), messages, np.concatenate(negatives))
 
 
+def refit_rate(cfg: WatermarkConfig, step: Any, total: Any) -> jax.Array:
+    """Phase 3's learning rate at ``step`` (0-based) of a ``total``-step schedule (ints or traced scalars):
+    a linear warm-up over the first 10 % (at least one step), then cosine decay to 0 at ``total`` (optax's
+    ``warmup_cosine_decay_schedule``, with the length as data so that :func:`refit_decoder` can size it to
+    the minutes left). The decoder's Adam state starts empty, and a full-rate start on a fitted decoder first
+    unlearned it (lego: 90.7 → 89.4 % bits after 500 steps at 1e-3 without warm-up)."""
+    s = jnp.asarray(step, jnp.float32)
+    n = jnp.maximum(jnp.asarray(total, jnp.float32), 1.0)
+    warm = jnp.maximum(jnp.floor(n / 10.0), 1.0)
+    rise = s / warm
+    fall = 0.5 * (1.0 + jnp.cos(jnp.pi * jnp.clip((s - warm) / jnp.maximum(n - warm, 1.0), 0.0, 1.0)))
+    return cfg.phase3_lr * jnp.where(s < warm, rise, fall)
+
+
 def refit_schedule(cfg: WatermarkConfig) -> optax.Schedule:
-    """Linear warm-up over the first 10 % of ``phase3_steps``, then cosine decay to 0: the decoder's Adam
-    state starts empty, and a full-rate start on a fitted decoder first unlearned it (lego: 90.7 → 89.4 %
-    bits after 500 steps at 1e-3 without warm-up)."""
-    steps = max(int(cfg.phase3_steps), 1)
-    return optax.warmup_cosine_decay_schedule(0.0, cfg.phase3_lr, max(steps // 10, 1), steps)
+    """:func:`refit_rate` over the configured ``phase3_steps``."""
+    return lambda count: refit_rate(cfg, count, max(int(cfg.phase3_steps), 1))
 
 
 def refit_optimizer(cfg: WatermarkConfig) -> optax.GradientTransformation:
-    """Phase 3's Adam over the decoder's weights, on :func:`refit_schedule`."""
-    return optax.adam(refit_schedule(cfg))
+    """Phase 3's Adam moments over the decoder's weights; the step scales them by :func:`refit_rate`."""
+    del cfg  # the rate is the step's argument (its schedule's length may change during the run)
+    return optax.scale_by_adam()
+
+
+# Decoder steps timed (after the first, which compiles) before phase 3's schedule is sized to the time left.
+SIZING_STEPS = 20
+# The share of the minutes left the sized schedule plans for (steps vary; the budget ends an overrun).
+SIZING_MARGIN = 0.97
 
 
 def make_refit_step(
     cfg: WatermarkConfig, decoder_state: PyTree
-) -> Callable[[PyTree, Any, jax.Array, RefitSet], tuple[PyTree, Any, jax.Array]]:
-    """A jitted ``(decoder params, Adam state, key, data) -> (params, state, loss)`` over batches of ``data``
-    (a :class:`RefitSet` of arrays: arguments, not constants baked into the compiled step).
+) -> Callable[[PyTree, Any, jax.Array, RefitSet, Any, Any], tuple[PyTree, Any, jax.Array]]:
+    """A jitted ``(decoder params, Adam state, key, data, step, total) -> (params, state, loss)`` over
+    batches of ``data`` (a :class:`RefitSet` of arrays: arguments, not constants baked into the compiled
+    step), at :func:`refit_rate` of ``step`` in a ``total``-step schedule (int32 scalars, data too).
 
     A batch: ``phase3_batch`` renders (ID and view uniform) and a quarter as many negatives; each image
     rounded to 8 bits with probability ½; the run's augmentations when phase 2 had them
@@ -192,7 +212,8 @@ def make_refit_step(
         return decoder_lib.apply_ll2({**decoder_state, "params": params}, ll2)
 
     @xla_cpu.jit_cpu_tuned
-    def step(params: PyTree, opt_state: Any, key: jax.Array, data: RefitSet) -> tuple[PyTree, Any, jax.Array]:
+    def step(params: PyTree, opt_state: Any, key: jax.Array, data: RefitSet, index: Any,
+             total: Any) -> tuple[PyTree, Any, jax.Array]:  # fmt: skip
         k_id, k_view, k_neg, k_pos, k_clean = jax.random.split(key, 5)
         n_ids, n_views = data.renders.shape[:2]
         ids = jax.random.randint(k_id, (batch,), 0, n_ids)
@@ -214,8 +235,9 @@ def make_refit_step(
             return loss
 
         loss, grads = jax.value_and_grad(loss_fn)(params)
-        updates, opt_state = tx.update(grads, opt_state, params)
-        return optax.apply_updates(params, updates), opt_state, loss
+        moments, opt_state = tx.update(grads, opt_state, params)
+        rate = refit_rate(cfg, index, total)
+        return jax.tree.map(lambda p, m: p - rate * m, params, moments), opt_state, loss
 
     return step
 
@@ -226,13 +248,18 @@ def refit_decoder(
     data: RefitSet,
     *,
     keep_going: Callable[[], bool] = lambda: True,
+    seconds_left: Callable[[], float] | None = None,
     progress: bool = False,
 ) -> tuple[PyTree, dict[str, float]]:
-    """``phase3_steps`` decoder steps on ``data`` from ``decoder_vars`` (``{"params", "batch_stats", ...}``;
-    only ``params`` change). ``keep_going()`` is asked before each step (the time budget).
+    """Up to ``phase3_steps`` decoder steps on ``data`` from ``decoder_vars`` (``{"params", "batch_stats",
+    ...}``; only ``params`` change). ``keep_going()`` is asked before each step (the time budget).
 
-    Deterministic in ``watermark.seed``. Returns the new variables and ``{"steps", "loss"}`` (steps taken,
-    the last step's loss).
+    ``seconds_left()`` (the time budget's, when it has one): after :data:`SIZING_STEPS` timed steps the
+    schedule is shortened to the steps that fit in :data:`SIZING_MARGIN` of it, so that its warm-up and
+    cosine decay end inside the budget, not cut off at a high rate on a slower machine. Without it, or when
+    all the steps fit, the schedule is ``phase3_steps`` long and the run deterministic in
+    ``watermark.seed``. Returns the new variables and ``{"steps", "scheduled", "loss"}`` (steps taken, the
+    schedule's length, the last step's loss).
     """
     step = make_refit_step(cfg, decoder_vars)
     arrays = jax.tree.map(jnp.asarray, data)
@@ -240,18 +267,33 @@ def refit_decoder(
     opt_state = refit_optimizer(cfg).init(params)
     key = jax.random.fold_in(jax.random.key(int(cfg.seed)), 0xDEC3)
     loss = jnp.full((), jnp.nan)
+    total = int(cfg.phase3_steps)
     done = 0
-    bar = tqdm(total=int(cfg.phase3_steps), disable=not progress, desc="embed phase 3 (decoder)", unit="step",
+    timed_from = 0.0
+    bar = tqdm(total=total, disable=not progress, desc="embed phase 3 (decoder)", unit="step",
                dynamic_ncols=True)  # fmt: skip
     try:
-        for s in range(int(cfg.phase3_steps)):
+        while done < total:
             if not keep_going():
                 break
-            params, opt_state, loss = step(params, opt_state, jax.random.fold_in(key, s), arrays)
-            done = s + 1
+            if seconds_left is not None and done in (1, SIZING_STEPS + 1):
+                jax.block_until_ready(params)  # the steps so far have run (the first one compiled)
+                now = time.perf_counter()
+                if done == 1:
+                    timed_from = now
+                else:
+                    step_s = (now - timed_from) / SIZING_STEPS
+                    fits = done + int(SIZING_MARGIN * max(seconds_left(), 0.0) / step_s)
+                    total = max(min(total, fits), done + 1)
+                    bar.total = total
+                    bar.refresh()
+            params, opt_state, loss = step(params, opt_state, jax.random.fold_in(key, done), arrays,
+                                           jnp.int32(done), jnp.int32(total))  # fmt: skip
+            done += 1
             if done % 25 == 0:  # reading the loss waits for the step: not every step
                 bar.set_postfix(loss=f"{float(loss):.4f}")
             bar.update(1)
     finally:
         bar.close()
-    return {**decoder_vars, "params": params}, {"steps": float(done), "loss": float(loss)}
+    return {**decoder_vars, "params": params}, {"steps": float(done), "scheduled": float(total),
+                                                "loss": float(loss)}  # fmt: skip

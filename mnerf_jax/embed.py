@@ -300,7 +300,9 @@ def embed(
                          references)  # fmt: skip
         result = loop.run(state, stop_at, started)
         field_done = result.steps == total_steps(cfg) and (stop_at is None or stop_at > result.steps)
-        if cfg.phase3_steps and field_done:
+        # A field the time budget ended still gets phase 3, in the minutes the budget kept for it.
+        cut = result.stopped_by_budget and loop.clock is not None and loop.clock.kept_s > 0
+        if cfg.phase3_steps and (field_done or cut):
             result = refit_phase(loop, result, split, source, progress)
         return result
     finally:
@@ -322,23 +324,28 @@ def check_phase3_unchanged(meta: dict[str, Any], config: Config, out: Path) -> N
 
 def refit_phase(loop: EmbedLoop, result: EmbedResult, split: Any, source: runs.LoadedRun,
                 progress: bool) -> EmbedResult:  # fmt: skip
-    """Phase 3 on the field ``result`` ended with (saved in ``loop.out``): the decoder alone
-    (``decoder_refit``), then a checkpoint at step ``phase-1 + phase-2 + phase-3 steps``. It is one unit: a
-    run killed inside it redoes it on ``--resume``; the time budget may end it early."""
+    """Phase 3 on the field ``result`` ended with (saved in ``loop.out``; the time budget may have ended it
+    before its schedule did): the decoder alone (``decoder_refit``, its schedule sized to the budget's
+    minutes left), then a checkpoint at step ``phase-1 + phase-2 steps`` (the field's schedule, wherever the
+    field stopped) ``+ phase-3 steps``, past the field's schedule, so that ``--resume`` finds the run
+    finished. It is one unit: a run killed inside it redoes it on ``--resume``."""
     tick = time.perf_counter()
     cfg = loop.config.watermark
     clock = loop.clock
     data = decoder_refit.render_refit_set(wm_run.load_watermarked_run(loop.out), split.cameras, cfg,
                                           split.images, source, progress, loop.references)  # fmt: skip
-    keep_going = (lambda: True) if clock is None else (lambda: clock.room_for(0.0, time.perf_counter()))
+    keep_going, seconds_left = lambda: True, None
+    if clock is not None:
+        keep_going = lambda: clock.room_for(0.0, time.perf_counter())  # noqa: E731
+        seconds_left = lambda: clock.seconds_left(time.perf_counter())  # noqa: E731
     decoder, metrics = decoder_refit.refit_decoder(cfg, result.state.decoder, data, keep_going=keep_going,
-                                                   progress=progress)  # fmt: skip
-    steps = result.steps + int(metrics["steps"])
+                                                   seconds_left=seconds_left, progress=progress)  # fmt: skip
+    steps = total_steps(cfg) + int(metrics["steps"])
     state = result.state.replace(decoder=decoder, step=jnp.asarray(steps, jnp.int32))
     runs.write_json_atomic(loop.out / runs.CONFIG_FILE, loop.config.to_dict())  # now with its phase 3
     loop.save(state)
-    last = {**result.last_metrics, "phase": 3.0, "phase3_loss": metrics["loss"],
-            "phase3_steps": metrics["steps"]}  # fmt: skip
+    last = {**result.last_metrics, "phase": 3.0, "phase3_loss": metrics["loss"], "field_steps": result.steps,
+            "phase3_steps": metrics["steps"], "phase3_scheduled": metrics["scheduled"]}  # fmt: skip
     return dataclasses.replace(result, steps=steps, seconds=result.seconds + time.perf_counter() - tick,
                                last_metrics=last, state=state)  # fmt: skip
 

@@ -53,7 +53,11 @@ class BudgetClock:
 
     def room_for(self, seconds: float, now: float) -> bool:
         """True while ``seconds`` more and the final checkpoint end within the budget."""
-        return (now - self.started) + seconds + self.checkpoint_s + RESERVE_S <= self.budget_s
+        return seconds <= self.seconds_left(now)
+
+    def seconds_left(self, now: float) -> float:
+        """Seconds of the budget left at ``now`` for work before the final checkpoint (negative: overrun)."""
+        return self.budget_s - (now - self.started) - self.checkpoint_s - RESERVE_S
 
 
 def expected_step_seconds(recent: Sequence[float]) -> float | None:

@@ -233,8 +233,10 @@ class EmbedLoop:
             bar.close()
             log.close()
         if stopped_by_budget and self.progress:
-            tqdm.write(f"embed: the time budget ({cfg.time_budget_min:g} min) ends the run at step {step} of "
-                      f"{total}; --resume continues it")  # fmt: skip
+            after = ("phase 3 follows in the minutes kept for it" if self.clock and self.clock.kept_s
+                     else "--resume continues it")  # fmt: skip
+            tqdm.write(f"embed: the time budget ({cfg.time_budget_min:g} min) ends the field at step {step} "
+                      f"of {total}; {after}")  # fmt: skip
         saved_there = step % every == 0 or step == cfg.phase1_steps
         if (stopped_by_budget and not saved_there) or not (self.out / DECODER_FILE).is_file():
             self.save(state)

@@ -8,7 +8,9 @@ import shutil
 from typing import TYPE_CHECKING
 
 import jax
+import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -149,7 +151,7 @@ def test_phase_three_weighs_its_negatives_by_its_own_weight_not_phase_twos() -> 
         cfg = WatermarkConfig(phase3_steps=10, phase3_batch=8, augment_prob=0.0, **weights)  # fast to compile
         step = decoder_refit.make_refit_step(cfg, variables)
         opt_state = decoder_refit.refit_optimizer(cfg).init(variables["params"])
-        return float(step(variables["params"], opt_state, jax.random.key(5), arrays)[2])
+        return float(step(variables["params"], opt_state, jax.random.key(5), arrays, 0, 10)[2])
 
     none = loss(phase3_lambda_clean=0.0, lambda_clean=5.0)
     one = loss(phase3_lambda_clean=1.0, lambda_clean=0.0)
@@ -178,6 +180,34 @@ def test_the_refit_schedule_warms_up_then_decays_to_zero() -> None:
     assert float(schedule(100)) == pytest.approx(1e-3)
     assert float(schedule(50)) == pytest.approx(5e-4)
     assert float(schedule(1000)) == pytest.approx(0.0, abs=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(total=st.integers(2, 20_000), where=st.floats(0.0, 1.2))
+def test_the_refit_rate_is_optaxs_warmup_cosine_schedule_of_its_length(total: int, where: float) -> None:
+    # The rate takes its schedule's length as data (so phase 3 can be sized to the minutes left); at any
+    # length it is the schedule phase 3 had as optax's warmup_cosine_decay_schedule.
+    cfg = WatermarkConfig(phase3_lr=1e-3)
+    step = int(where * total)
+    reference = optax.warmup_cosine_decay_schedule(0.0, 1e-3, max(total // 10, 1), total)
+    expected = pytest.approx(float(reference(step)), abs=2e-9)
+    assert float(decoder_refit.refit_rate(cfg, step, total)) == expected
+    assert float(decoder_refit.refit_rate(cfg, jnp.int32(step), jnp.int32(total))) == expected
+
+
+def test_phase_three_sizes_its_schedule_to_the_minutes_left() -> None:
+    # With no time left after the timed steps, the schedule ends at the next step (the rate decayed to 0 on
+    # it); with all the time it needs, it is the configured schedule, step for step the unbudgeted refit.
+    data, variables = _two_class_set()
+    cfg = WatermarkConfig(phase3_steps=60, phase3_batch=4, augment_prob=0.0, seed=2)
+    plain, plain_metrics = decoder_refit.refit_decoder(cfg, variables, data)
+    roomy, roomy_metrics = decoder_refit.refit_decoder(cfg, variables, data, seconds_left=lambda: 1e9)
+    assert plain_metrics["scheduled"] == roomy_metrics["scheduled"] == roomy_metrics["steps"] == 60
+    for x, y in zip(jax.tree.leaves(plain), jax.tree.leaves(roomy), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    _, short = decoder_refit.refit_decoder(cfg, variables, data, seconds_left=lambda: 0.0)
+    assert short["scheduled"] == short["steps"] == decoder_refit.SIZING_STEPS + 2
+    assert float(decoder_refit.refit_rate(cfg, short["steps"] - 1, short["scheduled"])) < 0.05 * cfg.phase3_lr
 
 
 def test_phase_three_follows_the_fields_schedule_and_the_budget_keeps_room_for_it() -> None:
@@ -229,6 +259,36 @@ def test_tiny_embed_with_phase_three_and_its_resume(tiny: TinyRuns) -> None:
     assert wm_run.load_watermarked_run(run).extras["decoder"].fingerprint == dec_after.fingerprint
     with pytest.raises(MnerfError, match="phase 3"):
         E.embed(tiny.fit, run, 2, 8, overrides=[*phase3, "watermark.phase3_steps=7"], **args)
+
+
+def test_a_field_the_time_budget_ends_still_gets_phase_three(
+    tiny: TinyRuns, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # On a slower machine the budget ends the field before its schedule does; phase 3 then runs in the
+    # minutes kept for it (here the clock finds no room for a third field step, and all the time phase 3
+    # needs). Its checkpoint lies past the field's schedule, so --resume finds the run finished.
+    two_steps = lambda self, now: len(self.step_seconds) < 2  # noqa: E731
+    monkeypatch.setattr(embed_budget.BudgetClock, "room_for_a_step", two_steps)
+    run = tiny.root / "p3_cut"
+    overrides = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=3",
+                 "watermark.phase3_steps=4", "watermark.phase3_views=2", "watermark.phase3_batch=4",
+                 "watermark.time_budget_min=30", "watermark.phase3_reserve_min=1"]  # fmt: skip
+    args = dict(decoder_path=tiny.decoder, progress=False)
+    result = E.embed(tiny.fit, run, 2, 8, overrides=overrides, **args)
+    assert result.stopped_by_budget
+    assert (result.last_metrics["field_steps"], result.last_metrics["phase3_steps"]) == (2, 4)
+    assert result.steps == 5 + 4 and wm_run.load_watermarked_run(run).step == 9
+    assert json.loads((run / "embed.json").read_text())["phase"] == 3
+    field = E.embed(tiny.fit, tiny.root / "p3_cut_field", 2, 8, stop_at=2,
+                    overrides=[*overrides, "watermark.phase3_steps=0"], **args)  # fmt: skip
+    refit = wm_run.load_watermarked_run(run)
+    for x, y in zip(jax.tree.leaves(field.state.params), jax.tree.leaves(refit.params), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-6, atol=1e-7)
+    assert refit.extras["decoder"].fingerprint != wm_run.load_watermarked_run(
+        tiny.root / "p3_cut_field").extras["decoder"].fingerprint
+    monkeypatch.undo()
+    again = E.embed(tiny.fit, run, 2, 8, overrides=overrides, resume=True, **args)
+    assert again.steps == 9 and not again.stopped_by_budget
 
 
 def test_novel_views_on_a_forward_facing_scene_are_refused_before_anything_is_written(

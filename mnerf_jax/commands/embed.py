@@ -69,6 +69,9 @@ def run(args: argparse.Namespace) -> int:
     }
     if result.stopped_by_budget:
         summary["stopped_by_budget"] = True
+    for name in ("field_steps", "phase3_steps", "phase3_scheduled"):  # phase 3 ran
+        if name in last:
+            summary[name] = int(last[name])
     print(f"mnerf embed: {json.dumps(summary)}")
     if args.eval_views >= 0:
         evaluation = wm_eval.evaluate_watermarked_run(
