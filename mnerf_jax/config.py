@@ -261,9 +261,15 @@ class WatermarkConfig:
     phase3_reserve_min: float = 0.0
     keep_checkpoints: int = 2
     # Wall-clock budget of `mnerf embed` in minutes (0: off). On: the run stops before a step that, with the
-    # last checkpoint, would not end inside it (judged by the steps just run; embed_budget.py). The schedule
-    # is not resized, so a stopped run is the first steps of the full one; --resume continues it.
+    # last checkpoint, would not end inside it (judged by the steps just run; embed_budget.py). The field's
+    # schedule is not resized, so a stopped field is the first steps of the full one; --resume continues it,
+    # unless phase 3 ran on it (in the phase3_reserve_min kept, its schedule sized to the time left).
     time_budget_min: float = 0.0
+    # With a time budget: once the field's first steps are timed (embed_budget.FIELD_SIZING_STEPS), shorten
+    # phase 2 to the steps that end inside the budget (less phase3_reserve_min), so that the learning rates'
+    # decay and the quality budget's ramp (fractions of the schedule) run their course on a slower machine
+    # instead of being cut off. The sized schedule is the run's (config.json, checkpoints; --resume keeps it).
+    budget_sizes_field: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

@@ -177,7 +177,8 @@ def refit_optimizer(cfg: WatermarkConfig) -> optax.GradientTransformation:
     return optax.scale_by_adam()
 
 
-# Decoder steps timed (after the first, which compiles) before phase 3's schedule is sized to the time left.
+# Decoder steps timed one by one (after the first, which compiles) before phase 3's schedule is sized to the
+# time left, by their median (robust to one that compiles again or meets a busy moment).
 SIZING_STEPS = 20
 # The share of the minutes left the sized schedule plans for (steps vary; the budget ends an overrun).
 SIZING_MARGIN = 0.97
@@ -262,33 +263,35 @@ def refit_decoder(
     schedule's length, the last step's loss).
     """
     step = make_refit_step(cfg, decoder_vars)
-    arrays = jax.tree.map(jnp.asarray, data)
-    params = decoder_vars["params"]
-    opt_state = refit_optimizer(cfg).init(params)
+    # Committed to the device as the step's outputs are: otherwise the second step compiles again (another
+    # cache key), and a timed step that compiles would shorten the sized schedule.
+    device = jax.devices()[0]
+    arrays = jax.device_put(jax.tree.map(jnp.asarray, data), device)
+    params = jax.device_put(decoder_vars["params"], device)
+    opt_state = jax.device_put(refit_optimizer(cfg).init(params), device)
     key = jax.random.fold_in(jax.random.key(int(cfg.seed)), 0xDEC3)
     loss = jnp.full((), jnp.nan)
     total = int(cfg.phase3_steps)
     done = 0
-    timed_from = 0.0
+    timed: list[float] = []
     bar = tqdm(total=total, disable=not progress, desc="embed phase 3 (decoder)", unit="step",
                dynamic_ncols=True)  # fmt: skip
     try:
         while done < total:
             if not keep_going():
                 break
-            if seconds_left is not None and done in (1, SIZING_STEPS + 1):
-                jax.block_until_ready(params)  # the steps so far have run (the first one compiled)
-                now = time.perf_counter()
-                if done == 1:
-                    timed_from = now
-                else:
-                    step_s = (now - timed_from) / SIZING_STEPS
-                    fits = done + int(SIZING_MARGIN * max(seconds_left(), 0.0) / step_s)
-                    total = max(min(total, fits), done + 1)
-                    bar.total = total
-                    bar.refresh()
+            if seconds_left is not None and done == SIZING_STEPS + 1:  # steps 1..SIZING_STEPS timed
+                step_s = float(np.median(timed))
+                fits = done + int(SIZING_MARGIN * max(seconds_left(), 0.0) / step_s)
+                total = max(min(total, fits), done + 1)
+                bar.total = total
+                bar.refresh()
+            tick = time.perf_counter()
             params, opt_state, loss = step(params, opt_state, jax.random.fold_in(key, done), arrays,
                                            jnp.int32(done), jnp.int32(total))  # fmt: skip
+            if seconds_left is not None and 1 <= done <= SIZING_STEPS:  # the first step compiles: not timed
+                jax.block_until_ready(loss)
+                timed.append(time.perf_counter() - tick)
             done += 1
             if done % 25 == 0:  # reading the loss waits for the step: not every step
                 bar.set_postfix(loss=f"{float(loss):.4f}")

@@ -32,10 +32,10 @@ per-group learning rates, exponential decay over both phases). The IDs share one
 colour layer but the last (``watermark.condition_many``), so each ID learns more often for much less than
 K renders' cost.
 
-Phase 3 (not in the paper; ``watermark.phase3_steps`` > 0): once the field's schedule has ended, the decoder
-alone learns on the finished field's renders of every training view (and of novel views) with every ID
-(``decoder_refit``); the field does not change. :func:`refit_phase` runs it and checkpoints at step
-``phase-1 + phase-2 + phase-3 steps``.
+Phase 3 (not in the paper; ``watermark.phase3_steps`` > 0): once the field's schedule has ended, or the time
+budget has ended the field in time to keep ``phase3_reserve_min`` for it, the decoder alone learns on the
+field's renders of every training view (and of novel views) with every ID (``decoder_refit``); the field
+does not change. :func:`refit_phase` runs it and checkpoints at step ``phase-1 + phase-2 + phase-3 steps``.
 
 A watermarked run (``WMRUN``) is written by :func:`embed` and read by ``wm_run`` (its layout, the loader
 registered with ``run.load_run``, the keys and decoder, choosing the ID to render).
@@ -261,6 +261,12 @@ def embed(
                 raise EmbedError(f"{out}: its checkpoint holds a {meta.get('kind')!r} model, not a watermark")
             saved = wm_run.normalised_meta(meta)
             check_compatible(saved, wm_run.fingerprint_config(config), out, wm_run.SECTIONS)
+            if config.watermark.budget_sizes_field:  # the run's sized schedule, not the preset's
+                ran = meta["config"]["watermark"]
+                config = dataclasses.replace(config, watermark=dataclasses.replace(
+                    config.watermark, phase1_steps=int(ran["phase1_steps"]),
+                    phase2_steps=int(ran["phase2_steps"])))  # fmt: skip
+                cfg = config.watermark
             check_phase3_unchanged(meta, config, out)
             _, tree, meta = wm_run.restore(store, out, optimizer=make_optimizer)
             state = EmbedState(
@@ -299,6 +305,7 @@ def embed(
         loop = EmbedLoop(config, split, keys, layout, geometry, policy, store, out, progress, on_step, vgg,
                          references)  # fmt: skip
         result = loop.run(state, stop_at, started)
+        cfg = loop.config.watermark  # the budget may have sized the field's schedule
         field_done = result.steps == total_steps(cfg) and (stop_at is None or stop_at > result.steps)
         # A field the time budget ended still gets phase 3, in the minutes the budget kept for it.
         cut = result.stopped_by_budget and loop.clock is not None and loop.clock.kept_s > 0

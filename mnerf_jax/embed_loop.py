@@ -157,6 +157,25 @@ class EmbedLoop:
         if self.clock is not None:
             self.clock.checkpoint_s = time.perf_counter() - tick
 
+    def size_schedule(self, step: int, now: float) -> bool:
+        """Shorten phase 2 to the steps that end inside the time budget (``watermark.budget_sizes_field``,
+        ``embed_budget.sized_field_steps``); the run's config.json and later checkpoints record it. True
+        when the schedule changed."""
+        wm = self.config.watermark
+        total = embed_budget.sized_field_steps(self.clock, now, step, self._total_steps, wm.checkpoint_every)
+        if total >= self._total_steps:
+            return False
+        phase2 = max(total - wm.phase1_steps, 1)
+        wm = dataclasses.replace(wm, phase1_steps=total - phase2, phase2_steps=phase2)
+        self.config = dataclasses.replace(self.config, watermark=wm)
+        self._total_steps, self._total = total, jnp.asarray(total, jnp.int32)
+        runs.write_json_atomic(self.out / runs.CONFIG_FILE, self.config.to_dict())
+        if self.progress:
+            step_s = self.clock.expected_step_s()
+            tqdm.write(f"embed: the time budget ({wm.time_budget_min:g} min) holds {total} of the field's "
+                       f"steps at {step_s:.2f} s a step; its schedule now ends there")  # fmt: skip
+        return True
+
     def dispatch(self, state: EmbedState, step: int, phase: int) -> StepOutcome | None:
         """Step ``step`` (its IDs and view from the seed) in ``phase``: the new state and host metrics, or
         None when samples overflowed the buffers (grown now: redo it)."""
@@ -191,6 +210,8 @@ class EmbedLoop:
         stop = total if stop_at is None else min(int(stop_at), total)
         start = step = int(state.step)
         every = max(int(cfg.checkpoint_every), 1)
+        sizing = self.clock is not None and cfg.budget_sizes_field and step < total
+        size_at = start + embed_budget.FIELD_SIZING_STEPS if sizing else -1
         bar = tqdm(total=stop, initial=start, disable=not self.progress, desc="embed", unit="step",
                    dynamic_ncols=True)  # fmt: skip
         recent: list[tuple[float, float, float]] = []
@@ -201,6 +222,13 @@ class EmbedLoop:
         try:
             while step < stop:
                 tick = time.perf_counter()
+                if step == size_at and self.size_schedule(step, tick):
+                    cfg, total = self.config.watermark, self._total_steps
+                    stop = min(stop, total)
+                    bar.total = stop
+                    bar.refresh()
+                    if step >= stop:
+                        break
                 if self.clock is not None and not self.clock.room_for_a_step(tick):
                     stopped_by_budget = True
                     break

@@ -50,9 +50,12 @@ def fingerprint_config(config: Config) -> Config:
     # another budget (or none). Phase 3 comes after the field's trajectory, so a finished two-phase run may be
     # resumed with one (embed.py refuses to run a second one). How the renders are read (the decision rule,
     # the jittered read) does not enter the embedding either.
+    # A schedule the budget sizes (budget_sizes_field) is the run's own: the preset's length is not compared.
     wm = dataclasses.replace(config.watermark, checkpoint_every=0, keep_checkpoints=0, id_threshold=0.0,
                              id_test="binomial", read_jitter=0, time_budget_min=0.0,
                              **PHASE3_DEFAULTS)  # fmt: skip
+    if wm.budget_sizes_field:
+        wm = dataclasses.replace(wm, phase1_steps=0, phase2_steps=0)
     return dataclasses.replace(config, train=TrainConfig(), watermark=wm)
 
 

@@ -71,7 +71,8 @@ def total_steps(cfg: WatermarkConfig) -> int:
 # steps are timed (embed_budget.py).
 _HOST_ONLY_FIELDS = (
     "min_hamming", "key_seed", "checkpoint_every", "seed", "id_threshold", "id_test", "keep_checkpoints",
-    "time_budget_min", "phase1_steps", "phase2_steps", "fidelity_psnr_start", "fidelity_ramp",
+    "time_budget_min", "budget_sizes_field", "phase1_steps", "phase2_steps", "fidelity_psnr_start",
+    "fidelity_ramp",
     *PHASE3_DEFAULTS,
 )  # fmt: skip
 

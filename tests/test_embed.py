@@ -465,6 +465,45 @@ def test_a_time_budget_ends_the_run_early_as_a_prefix_of_the_full_one(tiny: Tiny
         E.embed(tiny.fit, root / "b_bad", 2, 8, overrides=[*schedule, "watermark.time_budget_min=-1"], **args)
 
 
+def test_the_budget_sizes_the_fields_schedule_to_the_time_left() -> None:
+    # 100 s budget, 30 s kept for phase 3, 45 s reserve, 5 s checkpoints every 10 steps, 1 s steps: at 10 s,
+    # 10 s of field time are left, 1.5 s a step, 97 % of it: 6 more steps. Never longer than the schedule,
+    # never shorter than the next step.
+    from mnerf_jax import embed_budget as B
+
+    clock = B.BudgetClock(budget_s=100.0, started=0.0, kept_s=30.0)
+    assert B.sized_field_steps(clock, 10.0, 10, 100, 10) == 100  # nothing timed yet
+    for _ in range(5):
+        clock.record_step(1.0)
+    assert B.sized_field_steps(clock, 10.0, 10, 100, 10) == 16
+    assert B.sized_field_steps(clock, 10.0, 10, 12, 10) == 12
+    assert B.sized_field_steps(clock, 90.0, 10, 100, 10) == 11
+
+
+def test_a_budget_sized_field_records_its_schedule_and_resumes_it(
+    tiny: TinyRuns, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # With watermark.budget_sizes_field the loop asks, after FIELD_SIZING_STEPS timed steps, how many of the
+    # field's steps the budget holds (here: 14 of 22) and ends the schedule there: the run's config.json and
+    # checkpoints record 2 + 12 steps, and --resume under the preset's longer schedule finds it finished.
+    from mnerf_jax import embed_budget as B
+
+    monkeypatch.setattr(B, "sized_field_steps", lambda clock, now, step, total, every: 14)
+    overrides = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=20",
+                 "watermark.time_budget_min=30", "watermark.budget_sizes_field=true"]  # fmt: skip
+    args = dict(decoder_path=tiny.decoder, progress=False)
+    run = tiny.root / "sized"
+    result = E.embed(tiny.fit, run, 2, 8, overrides=overrides, **args)
+    assert result.steps == 14 and not result.stopped_by_budget
+    recorded = json.loads((run / "config.json").read_text())["watermark"]
+    assert (recorded["phase1_steps"], recorded["phase2_steps"]) == (2, 12)
+    assert wm_run.load_watermarked_run(run).step == 14
+    again = E.embed(tiny.fit, run, 2, 8, overrides=overrides, resume=True, **args)
+    assert again.steps == 14
+    with pytest.raises(MnerfError, match="incompatible"):  # unsized, the preset's 22 steps are another run
+        E.embed(tiny.fit, run, 2, 8, overrides=overrides[:-1], resume=True, **args)
+
+
 def test_recorded_watermark_settings_older_than_todays_are_named(
     tiny: TinyRuns, tmp_path: Path, mnerf
 ) -> None:
