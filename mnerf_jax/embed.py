@@ -347,6 +347,8 @@ def refit_phase(loop: EmbedLoop, result: EmbedResult, split: Any, source: runs.L
         seconds_left = lambda: clock.seconds_left(time.perf_counter())  # noqa: E731
     decoder, metrics = decoder_refit.refit_decoder(cfg, result.state.decoder, data, keep_going=keep_going,
                                                    seconds_left=seconds_left, progress=progress)  # fmt: skip
+    if not metrics["steps"]:  # no time for a decoder step: the run stays the field it was (resumable)
+        return result
     steps = total_steps(cfg) + int(metrics["steps"])
     state = result.state.replace(decoder=decoder, step=jnp.asarray(steps, jnp.int32))
     runs.write_json_atomic(loop.out / runs.CONFIG_FILE, loop.config.to_dict())  # now with its phase 3
