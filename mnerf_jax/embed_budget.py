@@ -60,7 +60,8 @@ class BudgetClock:
 
     def room_for(self, seconds: float, now: float) -> bool:
         """True while ``seconds`` more and the final checkpoint end within the budget."""
-        return seconds <= self.seconds_left(now)
+        # The sum, not seconds_left's difference: the same rounding at the edge as the steps were judged by.
+        return (now - self.started) + seconds + self.checkpoint_s + RESERVE_S <= self.budget_s
 
     def seconds_left(self, now: float) -> float:
         """Seconds of the budget left at ``now`` for work before the final checkpoint (negative: overrun)."""
