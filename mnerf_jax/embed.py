@@ -266,7 +266,6 @@ def embed(
                 config = dataclasses.replace(config, watermark=dataclasses.replace(
                     config.watermark, phase1_steps=int(ran["phase1_steps"]),
                     phase2_steps=int(ran["phase2_steps"])))  # fmt: skip
-                cfg = config.watermark
             check_phase3_unchanged(meta, config, out)
             _, tree, meta = wm_run.restore(store, out, optimizer=make_optimizer)
             state = EmbedState(
