@@ -165,6 +165,12 @@ class WatermarkConfig:
     # parameter by about its lr whatever its gradient, and at 1.0 that cost the fitted procedural field
     # 35.4 → 29.0 dB train-view PSNR in three steps (at 0.1: 33.9 after one step, 35.4 again at the third).
     lr_source_scale: float = 0.1
+    # True: the fitted TensoRF (density, appearance, basis, MLP) does not train; its colour samples of every
+    # training view are computed once and a step renders only what the watermark adds to them
+    # (sample_cache.py): no ray march in the step and no deferred patches. Needs a variant whose FiLM
+    # features enter the last layer (multinerf, no_grid, frozen_geometry) and jitter = false (the cached
+    # samples are an evaluation render's).
+    cache_source: bool = False
     # Phase 2: + lambda_clean · BCE(decoder(augmented ground-truth view), ½): a clean image should decode to
     # nothing. Not in the paper (0 there): a decoder that learns with the field otherwise learns to read the
     # scene itself, and clean renders decode as a key. Demo scene, 30 dB budget, lr_decoder 1e-3: 0.3 took

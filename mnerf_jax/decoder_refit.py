@@ -111,7 +111,8 @@ def novel_cameras(cameras: Cameras, count: int, seed: int, density: str = "angle
 
 def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_truth: np.ndarray,
                      clean_model: Any = None, progress: bool = False,
-                     clean_renders: np.ndarray | None = None) -> RefitSet:  # fmt: skip
+                     clean_renders: np.ndarray | None = None,
+                     training_renders: dict[int, np.ndarray] | None = None) -> RefitSet:  # fmt: skip
     """Phase 3's training set from a loaded watermarked run (``wm_run.load_watermarked_run``): every ID's
     renders of ``cameras`` (the training views) and of ``watermark.phase3_views`` novel views
     (:func:`novel_cameras`, seeded by ``watermark.seed``), rendered as evaluation renders them (no jitter).
@@ -122,7 +123,9 @@ def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_tr
     the clean renders on lego (one H200 run, seed 1). ``clean_renders [V, H, W, 3]``: the clean model's
     renders of ``cameras`` when the caller has them already (the quality budget's references), so that only
     the novel views are rendered again (a clean render costs about as much as all 16 IDs' renders of a view:
-    the geometry pass dominates)."""
+    the geometry pass dominates). ``training_renders``: every ID's renders of ``cameras``, ``{ID: [V, H, W,
+    3]}``, when the caller has them (``sample_cache.every_id_renders``), so that only the novel views are
+    rendered."""
     from mnerf_jax import run as runs
     from mnerf_jax import wm_run
 
@@ -133,12 +136,14 @@ def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_tr
     if cfg.phase3_views:
         sets.append(novel_cameras(cameras, int(cfg.phase3_views), int(cfg.seed), cfg.phase3_view_density,
                                   cfg.phase3_elevation_margin))  # fmt: skip
-    views = sum(len(c) for c in sets)
+    to_draw = sets if training_renders is None else sets[1:]
+    views = sum(len(c) for c in to_draw)
     bar = tqdm(total=views * keys.num_ids, disable=not progress, desc="embed phase 3 (renders)",
                unit="render", dynamic_ncols=True)  # fmt: skip
     tick = lambda _, rgb: bar.update(rgb.shape[-1] // 3)  # noqa: E731  (a view's renders: one per ID)
     try:
-        parts = [wm_run.render_every_id(run, cams, on_view=tick) for cams in sets]
+        parts = [] if training_renders is None else [training_renders]
+        parts += [wm_run.render_every_id(run, cams, on_view=tick) for cams in to_draw]
     finally:
         bar.close()
     renders = np.stack([np.concatenate([part[n] for part in parts]) for n in range(keys.num_ids)])

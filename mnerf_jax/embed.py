@@ -61,6 +61,7 @@ from mnerf_jax import (
     losses,
     raymarch,
     read_window,
+    sample_cache,
     watermark,
     wm_run,
 )
@@ -241,7 +242,9 @@ def embed(
     decoder_source = decoder_io.FRESH if fresh else str(Path(loaded.path).resolve())
     height, width = int(split.images.shape[1]), int(split.images.shape[2])
     # The layout tiles the image with the fewest patches of at most patch_size (no overlap where it divides).
-    layout = patch_layout(height, width, tiling_patch_size(height, width, cfg.patch_size, losses.SSIM_WINDOW))
+    # A cached source renders the whole view from its cached samples: one patch, whatever patch_size says.
+    side = max(height, width) if cfg.cache_source else cfg.patch_size
+    layout = patch_layout(height, width, tiling_patch_size(height, width, side, losses.SSIM_WINDOW))
     if cfg.lambda_ssim and layout.size < losses.SSIM_WINDOW:
         window = losses.SSIM_WINDOW
         raise EmbedError(f"patches of {layout.size} px (images {height}×{width}, watermark.patch_size "
@@ -300,9 +303,16 @@ def embed(
         # Committed to the device from the start, as every later step's state is (a step's outputs are): an
         # uncommitted first state is another cache key for jit, so the first step compiled twice.
         state = jax.device_put(state, jax.devices()[0])
-        references = clean_references(source, split, progress) if uses_clean_renders(cfg) else None
+        cache = None
+        if cfg.cache_source:
+            cache = sample_cache.build_cache(state.params, geometry, config.model, split.cameras, progress)
+        references = None
+        if uses_clean_renders(cfg) and cache is not None:  # the same renders, from the cached samples
+            references = sample_cache.clean_renders(cache, geometry.white_bg).reshape(split.images.shape)
+        elif uses_clean_renders(cfg):
+            references = clean_references(source, split, progress)
         loop = EmbedLoop(config, split, keys, layout, geometry, policy, store, out, progress, on_step, vgg,
-                         references)  # fmt: skip
+                         references, cache=cache)  # fmt: skip
         result = loop.run(state, stop_at, started)
         cfg = loop.config.watermark  # the budget may have sized the field's schedule
         field_done = result.steps == total_steps(cfg) and (stop_at is None or stop_at > result.steps)
@@ -338,8 +348,14 @@ def refit_phase(loop: EmbedLoop, result: EmbedResult, split: Any, source: runs.L
     tick = time.perf_counter()
     cfg = loop.config.watermark
     clock = loop.clock
-    data = decoder_refit.render_refit_set(wm_run.load_watermarked_run(loop.out), split.cameras, cfg,
-                                          split.images, source, progress, loop.references)  # fmt: skip
+    run = wm_run.load_watermarked_run(loop.out)
+    seen = None  # the training views' renders, from the cached samples when the source was cached
+    if loop.cache is not None:
+        seen = sample_cache.every_id_renders(loop.cache, run.params, cfg, loop.keys.num_ids,
+                                             run.geometry.white_bg)  # fmt: skip
+        seen = {n: r.reshape(split.images.shape) for n, r in seen.items()}
+    data = decoder_refit.render_refit_set(run, split.cameras, cfg, split.images, source, progress,
+                                          loop.references, seen)  # fmt: skip
     keep_going, seconds_left = lambda: True, None
     if clock is not None:
         keep_going = lambda: clock.room_for(0.0, time.perf_counter())  # noqa: E731

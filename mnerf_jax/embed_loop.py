@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from mnerf_jax import budgets, decoder_io, embed_budget, grids, raymarch, watermark, wm_run
+from mnerf_jax import budgets, decoder_io, embed_budget, grids, raymarch, sample_cache, watermark, wm_run
 from mnerf_jax import keys as keys_lib
 from mnerf_jax import metrics as metrics_lib
 from mnerf_jax import run as runs
@@ -115,6 +115,7 @@ class EmbedLoop:
     vgg: Any
     references: np.ndarray | None = None  # clean renders of the training views (wm_step.uses_clean_renders)
     clock: embed_budget.BudgetClock | None = None  # watermark.time_budget_min, when set
+    cache: sample_cache.SampleCache | None = None  # watermark.cache_source: the fitted field's samples
 
     def __post_init__(self) -> None:
         # What every step passes unchanged, made once rather than per step.
@@ -182,10 +183,12 @@ class EmbedLoop:
         cfg = self.config.watermark
         ids, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images), self._ids_per_step)
         batch = step_batch(self.split, view, self._messages, ids, self.references)
+        if self.cache is not None:
+            batch.update({k: jnp.asarray(v) for k, v in self.cache.view(view).items()})
         if uses_fidelity(cfg):  # the budget as data: its ramp (fidelity_budget_db) compiles once
             budget = metrics_lib.psnr_to_mse(fidelity_budget_db(cfg, step, self._total_steps))
             batch["fidelity_mse"] = np.float32(budget)
-        db, cb = self.budgets()
+        db, cb = self.budgets() if self.cache is None else (0, 0)  # a cached render marches no ray
         spec = StepSpec(model=self.config.model, wm=self._step_cfg, adam_b1=self.config.train.adam_b1,
                         adam_b2=self.config.train.adam_b2, phase=phase, height=self.layout.height,
                         width=self.layout.width, density_budget=db, colour_budget=cb)  # fmt: skip
@@ -193,7 +196,8 @@ class EmbedLoop:
                                         self._total, spec=spec)  # fmt: skip
         host = {k: float(v) for k, v in jax.device_get(metrics).items()}
         counts = {k: int(host[k]) for k in ("density_count", "colour_count")}
-        if self.policy.update(BUDGET_SITE, counts, self.layout.size**2, self.geometry.n_samples):
+        if self.cache is None and self.policy.update(BUDGET_SITE, counts, self.layout.size**2,
+                                                     self.geometry.n_samples):  # fmt: skip
             return None
         host.update(phase=float(phase), id=float(ids[0]), view=float(view))
         return new_state, host

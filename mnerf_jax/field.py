@@ -170,6 +170,28 @@ def narrow_matmul(x: Array, w: Array) -> Array:
     return jnp.stack([x @ w[:, j] for j in range(w.shape[-1])], axis=-1)
 
 
+def mlp_hidden(
+    mlp: dict[str, Array],
+    features: Array,
+    viewdirs: Array,
+    cfg: ModelConfig,
+    extra_first: Array | None = None,
+) -> Array:
+    """MLP_Fea's last hidden activation ``[P, W]`` (``extra_first`` as :func:`colour_mlp`)."""
+    h = mlp_inputs(features, viewdirs, cfg) @ mlp["w0"] + mlp["b0"]
+    if extra_first is not None:
+        h = h + extra_first @ mlp["in_extra"]
+    h = jax.nn.relu(h)
+    return jax.nn.relu(h @ mlp["w1"] + mlp["b1"])
+
+
+def colour_logits(params: Params, xyz: Array, viewdirs: Array, cfg: ModelConfig) -> Array:
+    """TensoRF's colour before its sigmoid, ``[P, 3]``: what a watermark's last-layer rows add to
+    (``sample_cache``)."""
+    h = mlp_hidden(params["mlp"], appearance_features(params, xyz), viewdirs, cfg)
+    return narrow_matmul(h, params["mlp"]["w2"]) + params["mlp"]["b2"]
+
+
 def colour_mlp(
     mlp: dict[str, Array],
     features: Array,
@@ -196,12 +218,7 @@ def colour_mlp(
 
     With both extras None this is exactly TensoRF's MLPRender_Fea.
     """
-    x = mlp_inputs(features, viewdirs, cfg)
-    h = x @ mlp["w0"] + mlp["b0"]
-    if extra_first is not None:
-        h = h + extra_first @ mlp["in_extra"]
-    h = jax.nn.relu(h)
-    h = jax.nn.relu(h @ mlp["w1"] + mlp["b1"])
+    h = mlp_hidden(mlp, features, viewdirs, cfg, extra_first)
     out = narrow_matmul(h, mlp["w2"]) + mlp["b2"]
     if extra_last is not None and extra_last.ndim == 3:
         # K renders of one sample set: the hidden layers once, the last layer's extra rows per set.

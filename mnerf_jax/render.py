@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -256,6 +256,56 @@ def colour_channels(fns: FieldFns, params: Params, cond: Any) -> int:
     return int(jax.eval_shape(lambda: fns.colour(params, cond, probe, probe)).shape[-1])
 
 
+class Marched(NamedTuple):
+    """Samples along rays with their compositing weights (:func:`march`)."""
+
+    t: Array  # [R, N] sample distances
+    viewdirs: Array  # [R, 3] unit directions
+    weights: Array  # [R, N] compositing weights α·T
+    density_count: Array  # samples inside the aabb and the alpha mask
+    density_overflow: Array  # of them, dropped by the density budget (0 when none)
+    dense_points: Callable[[], Array]  # () -> every sample, normalised, [R·N, 3]
+    points_at: Callable[[Array], tuple[Array, Array]]  # flat indices [B] -> (points [B, 3], ray ids [B])
+
+
+def march(
+    fns: FieldFns, params: Params, rays_o: Array, rays_d: Array, geometry: Geometry, key: Array | None,
+    density_budget: int | None,
+) -> Marched:  # fmt: skip
+    """Sample the rays (jittered when ``key`` is given), evaluate density where the sample is inside the
+    aabb and the alpha mask (in a buffer of ``density_budget`` slots, or densely for ``None``) and
+    composite the weights: the first half of :func:`render_rays`, shared with :func:`colour_samples`."""
+    r = rays_o.shape[0]
+    t, dists, viewdirs = sample_along_rays(rays_o, rays_d, geometry, key)
+    n = t.shape[1]
+    m = r * n
+    xyz = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]  # [R, N, 3], fused into its uses
+    valid = (inside_box(xyz, geometry.aabb) & alpha_mask_lookup(geometry, xyz)).reshape(m)
+    scale = 2.0 / (geometry.aabb[1] - geometry.aabb[0])
+
+    def dense_points() -> Array:
+        return ((xyz - geometry.aabb[0]) * scale - 1.0).reshape(m, 3)
+
+    def points_at(idx: Array) -> tuple[Array, Array]:
+        """Normalised points ``[B, 3]`` and ray ids ``[B]`` of flat sample indices (clamped)."""
+        idx = jnp.minimum(idx, m - 1)
+        ray = idx // n
+        t_s = grids.take_rows(t.reshape(m), idx)
+        p = grids.take_rows(rays_o, ray) + grids.take_rows(rays_d, ray) * t_s[:, None]
+        return (p - geometry.aabb[0]) * scale - 1.0, ray
+
+    if density_budget is None:
+        sigma = jnp.where(valid, fns.density(params, dense_points()), 0.0)
+        density_count, density_overflow = jnp.sum(valid, dtype=jnp.int32), jnp.zeros((), jnp.int32)
+    else:
+        idx, density_count = compact(valid, density_budget)
+        sigma_c = fns.density(params, points_at(idx)[0])
+        sigma = add_rows(m + 1, idx, sigma_c, sorted_indices=True)[:m]
+        density_overflow = jnp.maximum(density_count - density_budget, 0)
+    weights, _ = composite_cumsum(sigma.reshape(r, n), dists, geometry.distance_scale)
+    return Marched(t, viewdirs, weights, density_count, density_overflow, dense_points, points_at)
+
+
 # --------------------------------------------------------------------------------------------------
 # render_rays
 # --------------------------------------------------------------------------------------------------
@@ -301,41 +351,20 @@ def render_rays(
       ``colour_count`` (samples that needed each evaluation), ``density_overflow``,
       ``colour_overflow`` (samples beyond the budget that were dropped; 0 when none).
     """
-    r = rays_o.shape[0]
-    t, dists, viewdirs = sample_along_rays(rays_o, rays_d, geometry, key if train else None)
-    n = t.shape[1]
+    mk = march(fns, params, rays_o, rays_d, geometry, key if train else None, density_budget)
+    r, n = mk.t.shape
     m = r * n
-    xyz = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]  # [R, N, 3], fused into its uses
-    valid = (inside_box(xyz, geometry.aabb) & alpha_mask_lookup(geometry, xyz)).reshape(m)
-    scale = 2.0 / (geometry.aabb[1] - geometry.aabb[0])
-    zero = jnp.zeros((), jnp.int32)
-
-    def points_at(idx: Array) -> tuple[Array, Array]:
-        """Normalised points ``[B, 3]`` and ray ids ``[B]`` of flat sample indices (clamped)."""
-        idx = jnp.minimum(idx, m - 1)
-        ray = idx // n
-        t_s = grids.take_rows(t.reshape(m), idx)
-        p = grids.take_rows(rays_o, ray) + grids.take_rows(rays_d, ray) * t_s[:, None]
-        return (p - geometry.aabb[0]) * scale - 1.0, ray
-
-    # Density where the sample is inside the aabb and the alpha mask.
-    if density_budget is None:
-        xyz_n = ((xyz - geometry.aabb[0]) * scale - 1.0).reshape(m, 3)
-        sigma = jnp.where(valid, fns.density(params, xyz_n), 0.0)
-        density_count, density_overflow = jnp.sum(valid, dtype=jnp.int32), zero
-    else:
-        idx, density_count = compact(valid, density_budget)
-        sigma_c = fns.density(params, points_at(idx)[0])
-        sigma = add_rows(m + 1, idx, sigma_c, sorted_indices=True)[:m]
-        density_overflow = jnp.maximum(density_count - density_budget, 0)
-    weights, _ = composite_cumsum(sigma.reshape(r, n), dists, geometry.distance_scale)
+    weights = mk.weights
     acc = jnp.sum(weights, -1)
-    depth = jnp.sum(weights * t, -1)
+    depth = jnp.sum(weights * mk.t, -1)
+    density_count, density_overflow = mk.density_count, mk.density_overflow
+    viewdirs, points_at = mk.viewdirs, mk.points_at
+    zero = jnp.zeros((), jnp.int32)
 
     # Colour where the weight matters.
     significant = jax.lax.stop_gradient(weights > weight_threshold).reshape(m)
     if colour_budget is None:
-        xyz_n = ((xyz - geometry.aabb[0]) * scale - 1.0).reshape(m, 3)
+        xyz_n = mk.dense_points()
         vd = jnp.broadcast_to(viewdirs[:, None, :], (r, n, 3)).reshape(m, 3)
         rgb_s = jnp.where(significant[:, None], fns.colour(params, cond, xyz_n, vd), 0.0)
         rgb = jnp.sum(weights[..., None] * rgb_s.reshape(r, n, -1), axis=1)
@@ -362,4 +391,44 @@ def render_rays(
         "colour_count": colour_count,
         "density_overflow": density_overflow,
         "colour_overflow": colour_overflow,
+    }
+
+
+@jit_cpu_tuned(static_argnums=(0,), static_argnames=("density_budget", "colour_budget", "weight_threshold"))
+def colour_samples(
+    fns: FieldFns,
+    params: Params,
+    rays_o: Array,
+    rays_d: Array,
+    geometry: Geometry,
+    *,
+    density_budget: int,
+    colour_budget: int,
+    weight_threshold: float = WEIGHT_THRESHOLD,
+) -> dict[str, Array]:
+    """The samples :func:`render_rays` (evaluation mode: no jitter) would colour, for a caller that colours
+    them itself (``sample_cache``).
+
+    Returns ``xyz [B, 3]`` (normalised), ``viewdirs [B, 3]``, ``ray [B]`` int32 (``R`` for padding),
+    ``weight [B]`` (0 for padding), ``acc [R]`` (Σ w), with ``B = colour_budget``, and the counts and
+    overflows of :func:`render_rays`. ``Σ_b weight_b · colour_b`` per ray, plus ``(1 − acc)·bg``, is
+    ``render_rays``'s image.
+    """
+    mk = march(fns, params, rays_o, rays_d, geometry, None, density_budget)
+    r, n = mk.t.shape
+    m = r * n
+    significant = jax.lax.stop_gradient(mk.weights > weight_threshold).reshape(m)
+    idx, colour_count = compact(significant, colour_budget)
+    xyz, ray = mk.points_at(idx)
+    real = idx < m
+    return {
+        "xyz": xyz,
+        "viewdirs": grids.take_rows(mk.viewdirs, ray),
+        "ray": jnp.where(real, ray, r).astype(jnp.int32),
+        "weight": jnp.where(real, grids.take_rows(mk.weights.reshape(m), jnp.minimum(idx, m - 1)), 0.0),
+        "acc": jnp.sum(mk.weights, -1),
+        "density_count": mk.density_count,
+        "colour_count": colour_count,
+        "density_overflow": mk.density_overflow,
+        "colour_overflow": jnp.maximum(colour_count - colour_budget, 0),
     }

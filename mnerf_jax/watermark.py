@@ -109,6 +109,13 @@ def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
         raise WatermarkError(f"watermark.time_budget_min must be ≥ 0 (0: off), got {cfg.time_budget_min}")
     if (problem := decoder_refit.settings_problem(cfg)) is not None:
         raise WatermarkError(problem)
+    if cfg.cache_source and (injection(cfg) != "last" or not uses_film(cfg)):
+        raise WatermarkError(f"watermark.cache_source caches the fitted field's last-layer logits: variant "
+                             f"{cfg.variant!r} changes more than them (use multinerf, no_grid or "
+                             "frozen_geometry)")  # fmt: skip
+    if cfg.cache_source and cfg.jitter:
+        raise WatermarkError("watermark.cache_source renders the cached samples of an evaluation render: "
+                             "set watermark.jitter=false")  # fmt: skip
     if cfg.clean_negative not in CLEAN_NEGATIVES:
         raise WatermarkError(f"watermark.clean_negative must be one of {', '.join(CLEAN_NEGATIVES)}, got "
                              f"{cfg.clean_negative!r}")  # fmt: skip
@@ -197,8 +204,8 @@ def extra_width(cfg: WatermarkConfig) -> int:
 
 
 def trains_density(cfg: WatermarkConfig) -> bool:
-    """False for frozen_geometry: the density grid keeps the fitted values."""
-    return cfg.variant != "frozen_geometry"
+    """False for frozen_geometry and a cached source: the density grid keeps the fitted values."""
+    return cfg.variant != "frozen_geometry" and not cfg.cache_source
 
 
 # ------------------------------------------------------------------------------------------------- init

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from mnerf_jax import augment, dwt, losses, raymarch, read_window, render, watermark, xla_cpu
+from mnerf_jax import augment, dwt, losses, raymarch, read_window, render, sample_cache, watermark, xla_cpu
 from mnerf_jax import decoder as decoder_lib
 from mnerf_jax import metrics as metrics_lib
 from mnerf_jax.config import ModelConfig, WatermarkConfig
@@ -99,9 +99,13 @@ def param_labels(tree: PyTree, cfg: WatermarkConfig) -> PyTree:
     factors (``lr_grid · lr_source_scale``); ``embedding``: Emb and Mod (``lr_embedding``: each ID's row of
     Emb only learns on the steps that draw that ID); ``network``: the MLP's extra rows and the position MLP
     (``lr_network``); ``source_network``: the fitted basis and MLP (``lr_network · lr_source_scale``);
-    ``decoder`` (``lr_decoder``); ``frozen``: the density grid of the frozen_geometry variant.
+    ``decoder`` (``lr_decoder``); ``frozen``: the density grid of the frozen_geometry variant, and the
+    whole fitted field with ``cache_source``.
     """
     density_label = "source_grid" if watermark.trains_density(cfg) else "frozen"
+    frozen = cfg.cache_source  # the fitted field is cached, so it cannot change
+    grid_label = "frozen" if frozen else "source_grid"
+    network_label = "frozen" if frozen else "source_network"
 
     def field_label(path: tuple[Any, ...], _: Any) -> str:
         names = [getattr(p, "key", getattr(p, "name", None)) for p in path]
@@ -112,10 +116,10 @@ def param_labels(tree: PyTree, cfg: WatermarkConfig) -> PyTree:
         if top == "density":
             return density_label
         if top == "appearance":
-            return "source_grid"
+            return grid_label
         if top == "mlp" and second in ("out_extra", "in_extra"):
             return "network"
-        return "source_network"
+        return network_label
 
     return {
         "field": jax.tree_util.tree_map_with_path(field_label, tree["field"]),
@@ -149,8 +153,23 @@ def make_optimizer(
     return optax.multi_transform(transforms, functools.partial(param_labels, cfg=cfg))
 
 
-def render_patch_fn(spec: StepSpec, geometry: raymarch.Geometry, ids: jax.Array) -> RenderFn:
-    """Patch renders with the IDs ``ids [K]``: ``rgb [R, 3K]`` (ID ``ids[k]`` in columns ``3k:3k+3``)."""
+def render_patch_fn(
+    spec: StepSpec, geometry: raymarch.Geometry, ids: jax.Array, cache: dict[str, jax.Array] | None = None
+) -> RenderFn:
+    """Patch renders with the IDs ``ids [K]``: ``rgb [R, 3K]`` (ID ``ids[k]`` in columns ``3k:3k+3``).
+
+    With ``cache`` (``watermark.cache_source``: the view's ``cache_*`` buffers) the render is the whole
+    view from its cached samples (one patch covers it; the rays are not read)."""
+    if cache is not None:
+
+        def cached_fn(params: PyTree, rays: PyTree, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+            del rays, key
+            cond = watermark.condition_many(params, ids, spec.wm)
+            rgb = sample_cache.cached_render(params, cond, cache, spec.wm, geometry.white_bg)
+            count = jnp.sum(cache["cache_weight"] > 0, dtype=jnp.int32)
+            return rgb, {"density_count": jnp.zeros((), jnp.int32), "colour_count": count}
+
+        return cached_fn
     fns = watermark.field_fns(spec.model, spec.wm)
 
     def render_fn(params: PyTree, rays: PyTree, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
@@ -395,7 +414,8 @@ def embed_step(
     image_loss = make_image_loss(spec, k_aug, message, target_image, state.decoder, vgg_params, reference,
                                  batch.get("keys"), batch["id"], batch.get("fidelity_mse"))  # fmt: skip
     ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
-    render_fn = render_patch_fn(spec, geometry, batch["id"])
+    cache = {k: v for k, v in batch.items() if k.startswith("cache_")} or None
+    render_fn = render_patch_fn(spec, geometry, batch["id"], cache)
     loss, aux, image, g_field, g_dec = deferred_grad(
         render_fn, image_loss, ploss, state.params, state.decoder["params"],
         rays, batch["target"], layout_index, layout_owner, k_render, h, w,
