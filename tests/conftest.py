@@ -168,6 +168,9 @@ TINY_EMBED = [
     # decoder's whitening gain makes any colour change a large one). test_augment compiles and differentiates
     # the policy over all 14; test_embed checks that the empty default hands the step the whole registry.
     "watermark.augment_names=gaussian_blur,box_blur,sharpness",
+    # The paper's path, ray-marched with deferred patches and an adapting source (the procedural preset caches
+    # its frozen source; tests/test_sample_cache.py embeds that way).
+    "watermark.cache_source=false", "watermark.jitter=true",
 ]  # fmt: skip
 
 

@@ -397,7 +397,9 @@ def test_embedding_config_records_the_schedule_it_runs(tiny: TinyRuns) -> None:
 
     source = runs.load_run(tiny.fit)
     wm = E.resolve_config(source, None, [], 16, 16).watermark
-    # Phase 1 from the procedural preset (100); phase 2 -1 by default: by the number of IDs.
+    # Both phases from the procedural preset (100 + 1,600); -1 is by the number of IDs.
+    assert (wm.phase1_steps, wm.phase2_steps) == (100, 1600)
+    wm = E.resolve_config(source, None, ["watermark.phase2_steps=-1"], 16, 16).watermark
     assert (wm.phase1_steps, wm.phase2_steps) == (100, 3200)
     sets = ["watermark.phase1_steps=-1", "watermark.phase2_steps=7"]
     wm = E.resolve_config(source, None, sets, 2, 8).watermark

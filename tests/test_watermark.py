@@ -198,7 +198,8 @@ def test_the_cpu_preset_moves_steps_from_phase_1_to_phase_2() -> None:
     assert plain == WatermarkConfig()
 
 
-def test_the_cpu_quality_preset_is_the_cpu_preset_with_one_patch_a_ramp_no_attacks_and_a_phase_3() -> None:
+def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no_attacks_and_a_phase_3(
+) -> None:
     from mnerf_jax import config
     from mnerf_jax.deferred import patch_layout
     from mnerf_jax.wm_step import fidelity_budget_db
@@ -209,9 +210,12 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_one_patch_a_ramp_no_attac
         cfg, fidelity_psnr=0.0, fidelity_psnr_start=0.0, fidelity_ramp=(0.0, 0.0), augment_prob=0.75,
         patch_size=64, phase2_steps=2600, phase3_steps=0, phase3_views=0, phase3_reserve_min=0.0,
         phase3_batch=32, phase3_lambda_clean=0.3, read_jitter=0, phase3_view_density="angles",
-        phase3_elevation_margin=0.0,
+        phase3_elevation_margin=0.0, cache_source=False, jitter=True,
     ) == base  # fmt: skip
     assert cfg.augment_prob == 0.0
+    # The fitted field frozen and its samples cached (sample_cache.py), which needs unjittered samples.
+    assert cfg.cache_source and not cfg.jitter
+    W.check_config(cfg, num_ids=16)
     # One patch covers a lego 1/8 view (100 px): the deferred path's single-render branch.
     assert patch_layout(100, 100, cfg.patch_size).num_patches == 1
     # 20 dB until 35 % of the field's 2,700 steps, 41.5 dB from 60 % on.
