@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -159,6 +160,22 @@ def cached_render(
     xyz = view["cache_xyz"]
     logits = view["cache_logits"][:, None, :] + watermark.film_logits(params, cond, xyz, cfg)  # [B, K, 3]
     return composite(view, jax.nn.sigmoid(logits).reshape(xyz.shape[0], -1), white_bg)
+
+
+def view_render_fn(
+    cfg: WatermarkConfig, white_bg: bool, ids: Array, view: dict[str, Array]
+) -> Callable[[Any, Any, Array], tuple[Array, dict[str, Array]]]:
+    """The embedding step's render function (``deferred.RenderFn``) for a cached view: the whole view with
+    the IDs ``ids [K]``, ``rgb [R, 3K]``; the rays and key it is given are not read (one patch covers the
+    view, and the cached samples are not jittered)."""
+
+    def render_fn(params: Any, rays: Any, key: Array) -> tuple[Array, dict[str, Array]]:
+        del rays, key
+        rgb = cached_render(params, watermark.condition_many(params, ids, cfg), view, cfg, white_bg)
+        count = jnp.sum(view["cache_weight"] > 0, dtype=jnp.int32)
+        return rgb, {"density_count": jnp.zeros((), jnp.int32), "colour_count": count}
+
+    return render_fn
 
 
 @functools.partial(jax.jit, static_argnums=(1,))

@@ -161,15 +161,7 @@ def render_patch_fn(
     With ``cache`` (``watermark.cache_source``: the view's ``cache_*`` buffers) the render is the whole
     view from its cached samples (one patch covers it; the rays are not read)."""
     if cache is not None:
-
-        def cached_fn(params: PyTree, rays: PyTree, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
-            del rays, key
-            cond = watermark.condition_many(params, ids, spec.wm)
-            rgb = sample_cache.cached_render(params, cond, cache, spec.wm, geometry.white_bg)
-            count = jnp.sum(cache["cache_weight"] > 0, dtype=jnp.int32)
-            return rgb, {"density_count": jnp.zeros((), jnp.int32), "colour_count": count}
-
-        return cached_fn
+        return sample_cache.view_render_fn(spec.wm, geometry.white_bg, ids, cache)
     fns = watermark.field_fns(spec.model, spec.wm)
 
     def render_fn(params: PyTree, rays: PyTree, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
