@@ -131,7 +131,7 @@ def build_cache(
             out[i, : len(s[name])] = s[name]
         return out
 
-    return SampleCache(
+    cache = SampleCache(
         xyz=padded("xyz", 0.0),
         logits=padded("logits", 0.0),
         weight=padded("weight", 0.0),
@@ -139,6 +139,11 @@ def build_cache(
         acc=np.stack([s["acc"] for s in views]),
         counts=counts,
     )
+    if progress:
+        most = int(counts.max(initial=0))
+        tqdm.write(f"sample cache: {len(views)} views, at most {most:,} coloured samples a view ({size:,} "
+                   f"slots), {cache.nbytes / 2**20:.0f} MB")  # fmt: skip
+    return cache
 
 
 def composite(view: dict[str, Array], rgb_s: Array, white_bg: bool) -> Array:
