@@ -307,10 +307,9 @@ def embed(
         if cfg.cache_source:
             cache = sample_cache.build_cache(state.params, geometry, config.model, split.cameras, progress)
         references = None
-        if uses_clean_renders(cfg) and cache is not None:  # the same renders, from the cached samples
-            references = sample_cache.clean_renders(cache, geometry.white_bg).reshape(split.images.shape)
-        elif uses_clean_renders(cfg):
-            references = clean_references(source, split, progress)
+        if uses_clean_renders(cfg):  # from the cached samples when there are some: the same renders
+            references = (clean_references(source, split, progress) if cache is None else
+                          sample_cache.clean_renders(cache, geometry.white_bg).reshape(split.images.shape))
         loop = EmbedLoop(config, split, keys, layout, geometry, policy, store, out, progress, on_step, vgg,
                          references, cache=cache)  # fmt: skip
         result = loop.run(state, stop_at, started)

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from mnerf_jax import budgets, field, render, watermark
+from mnerf_jax import budgets, field, render, watermark, wm_run
 from mnerf_jax.config import ModelConfig, WatermarkConfig
 from mnerf_jax.data import camera_rays
 from mnerf_jax.raymarch import Geometry
@@ -203,7 +203,7 @@ def _id_renders(
 
 
 def every_id_renders(cache: SampleCache, params: Any, cfg: WatermarkConfig, num_ids: int, white_bg: bool,
-                     ids_per_render: int = 16) -> dict[int, np.ndarray]:  # fmt: skip
+                     ids_per_render: int = wm_run.IDS_PER_RENDER) -> dict[int, np.ndarray]:  # fmt: skip
     """Every ID's render of every cached view, ``{ID: [V, R, 3]}`` float32, as ``wm_run.render_every_id``
     renders them (evaluation mode) for a field whose source is the cached one, without a ray march."""
     out: dict[int, list[np.ndarray]] = {n: [] for n in range(num_ids)}
