@@ -37,9 +37,12 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
-    from mnerf_jax import budgets, deferred, embed, watermark, wm_step
-    from mnerf_jax import decoder as decoder_lib
     from mnerf_jax.data.rays import camera_rays
+    from mnerf_jax.reader import decoder as decoder_lib
+    from mnerf_jax.tensorf import budgets
+    from mnerf_jax.watermark import deferred, embed
+    from mnerf_jax.watermark import model as watermark
+    from mnerf_jax.watermark import step as wm_step
 
     source = embed.load_source(run)
     config = embed.resolve_config(source, None, [f"watermark.patch_size={patch}"], num_ids=4, bits=16)

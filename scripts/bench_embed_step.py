@@ -8,7 +8,7 @@ shipped decoder, the run's training views) into a temporary folder for ``--phase
 phase-2 steps, and times every step (the wall time between two steps' callbacks, so budget refits, redone
 steps and checkpoints are inside it). A step's cost does not depend on how many steps the schedule has, so
 the medians of each phase (its first step left out: compilation) times the schedule that the same
-``--num-ids`` and ``--set`` resolve to (``watermark.phase_steps``), plus the measured start-up, give the
+``--num-ids`` and ``--set`` resolve to (``model.phase_steps``), plus the measured start-up, give the
 projected wall time of the whole embedding. The protocol of the README (lego at 1/8, 16 IDs x 16 bits):
 
     python scripts/bench_embed_step.py --run LEGO_RUN --num-ids 16 --bits 16
@@ -26,12 +26,12 @@ from pathlib import Path
 
 def bench(run: str, data: str | None, num_ids: int, bits: int, phase1: int, phase2: int,
           overrides: list[str]) -> dict:  # fmt: skip
-    from mnerf_jax import embed, watermark
+    from mnerf_jax.watermark import embed, model
 
     source = embed.load_source(run)
     cfg = embed.resolve_config(source, None, overrides, num_ids, bits).watermark
-    schedule = watermark.phase_steps(cfg)
-    short = [*overrides, f"watermark.phase1_steps={phase1}", f"watermark.phase2_steps={phase2}"]
+    schedule = model.phase_steps(cfg)
+    short = [*overrides, f"model.phase1_steps={phase1}", f"model.phase2_steps={phase2}"]
     stamps: list[float] = []
     phases: list[int] = []
 
@@ -50,7 +50,7 @@ def bench(run: str, data: str | None, num_ids: int, bits: int, phase1: int, phas
     overhead = sum(v[0] - median[p] for p, v in per_phase.items() if v)
     projected = overhead + schedule[0] * median[1] + schedule[1] * median[2]
     return {
-        "num_ids": num_ids, "bits": bits, "ids_per_step": watermark.ids_per_step_of(cfg, num_ids),
+        "num_ids": num_ids, "bits": bits, "ids_per_step": model.ids_per_step_of(cfg, num_ids),
         "phase1_s_per_step": round(median[1], 3), "phase2_s_per_step": round(median[2], 3),
         "first_steps_s": [round(v[0], 1) for v in per_phase.values() if v],
         "redone_steps": result.redone_steps, "schedule": list(schedule),

@@ -25,17 +25,18 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mnerf_jax.commands.fit import reexec_with_huge_pages  # noqa: E402
+from mnerf_jax.cli.fit import reexec_with_huge_pages  # noqa: E402
 
-# glibc huge pages for XLA's buffers, as the mnerf command uses (see mnerf_jax.commands.fit).
+# glibc huge pages for XLA's buffers, as the mnerf command uses (see mnerf_jax.cli.fit).
 reexec_with_huge_pages([sys.executable, str(Path(__file__).resolve()), *sys.argv[1:]])
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mnerf_jax import budgets, chunked, train  # noqa: E402
-from mnerf_jax.config import load_config  # noqa: E402
+from mnerf_jax.core.config import load_config  # noqa: E402
 from mnerf_jax.data import camera_rays, load_scene  # noqa: E402
+from mnerf_jax.tensorf import budgets, chunked
+from mnerf_jax.tensorf.fit import loop as train  # noqa: E402
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -29,9 +29,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from mnerf_jax.commands.fit import reexec_with_huge_pages
+from mnerf_jax.cli.fit import reexec_with_huge_pages
 
-# glibc huge pages for XLA's buffers, as the mnerf command uses (see mnerf_jax.commands.fit).
+# glibc huge pages for XLA's buffers, as the mnerf command uses (see mnerf_jax.cli.fit).
 reexec_with_huge_pages([sys.executable, str(Path(__file__).resolve()), *sys.argv[1:]])
 
 import jax  # noqa: E402
@@ -39,8 +39,9 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.scipy.ndimage import map_coordinates  # noqa: E402
 
-from mnerf_jax import alpha_mask, budgets, field, grid_volume, grids, raymarch, render, xla_cpu  # noqa: E402
-from mnerf_jax.config import ModelConfig  # noqa: E402
+from mnerf_jax.core import xla_cpu  # noqa: E402
+from mnerf_jax.core.config import ModelConfig  # noqa: E402
+from mnerf_jax.tensorf import alpha_mask, budgets, field, grid_volume, grids, raymarch, render
 
 
 def best_time(fn: Callable[[], object], repeats: int) -> float:

@@ -24,10 +24,10 @@ from PIL import Image
 from skimage import data as skdata
 
 try:
-    from mnerf_jax.jpeg import jpeg
+    from mnerf_jax.imaging.jpeg import jpeg
 except ImportError:  # run from a checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from mnerf_jax.jpeg import jpeg
+    from mnerf_jax.imaging.jpeg import jpeg
 
 PHOTOS = ("astronaut", "coffee", "chelsea", "rocket")
 

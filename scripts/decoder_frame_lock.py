@@ -18,9 +18,10 @@ import json
 import jax.numpy as jnp
 import numpy as np
 
-from mnerf_jax import decoder as dec
-from mnerf_jax import decoder_io, informed
-from mnerf_jax.decoder_images import heldout_images, heldout_messages
+from mnerf_jax.reader import decoder as dec
+from mnerf_jax.reader import decoder_io
+from mnerf_jax.reader.train import informed
+from mnerf_jax.reader.train.cover_images import heldout_images, heldout_messages
 
 BANDS = ((0, 4), (4, 8), (8, 16), (16, 32), (32, 64), (64, 10**6))  # distance to the border, pixels
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 
 def main(argv: list[str] | None = None) -> int:
-    from mnerf_jax.wm_attacks import attacks_plot
+    from mnerf_jax.evaluation.attacks import attacks_plot
 
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter

@@ -22,7 +22,7 @@ def main(argv: list[str] | None = None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from mnerf_jax.scalar_log import read_scalars
+    from mnerf_jax.core.scalar_log import read_scalars
 
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter

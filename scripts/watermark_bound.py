@@ -33,10 +33,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mnerf_jax import augment, decoder_io, identification, informed, keys, read_window
-from mnerf_jax import decoder as dec
-from mnerf_jax.config import DataConfig
+from mnerf_jax.core.config import DataConfig
 from mnerf_jax.data import load_scene
+from mnerf_jax.imaging import augment
+from mnerf_jax.reader import decoder as dec
+from mnerf_jax.reader import decoder_io, identification, keys, read_window
+from mnerf_jax.reader.train import informed
 
 
 def residual_psnr(clean_psnr: float, max_drop: float) -> float:

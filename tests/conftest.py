@@ -55,7 +55,7 @@ def pytest_configure(config: pytest.Config) -> None:
         config.stash[_CACHE_TO_REMOVE] = folder
     import jax
 
-    from mnerf_jax import xla_cpu
+    from mnerf_jax.core import xla_cpu
 
     if SET_OPT_LEVELS:
         xla_cpu.CPU_OPTIONS[OPT_LEVEL_FLAG] = "1"
@@ -193,7 +193,7 @@ def random_decoder(path: Path, bits: int, images: np.ndarray | None = None) -> P
     import jax
     import jax.numpy as jnp
 
-    from mnerf_jax import decoder, decoder_io, dwt
+    from mnerf_jax.reader import decoder, decoder_io, dwt
 
     variables = decoder.init_decoder(jax.random.PRNGKey(0), bits)
     if images is not None:
@@ -209,10 +209,10 @@ def random_decoder(path: Path, bits: int, images: np.ndarray | None = None) -> P
 
 def build_tiny_runs(root: Path) -> TinyRuns:
     """Fit, make a decoder and embed into ``root`` (about a minute on one core)."""
-    from mnerf_jax import embed
-    from mnerf_jax.commands.fit import fit_run
-    from mnerf_jax.config import load_config
+    from mnerf_jax.cli.fit import fit_run
+    from mnerf_jax.core.config import load_config
     from mnerf_jax.data import load_scene
+    from mnerf_jax.watermark import embed
 
     config = load_config("procedural", TINY_FIT)
     fit_run(config, None, root / "fit", evaluate=False, quiet=True)

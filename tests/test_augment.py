@@ -12,9 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from mnerf_jax import augment, image_filters
-from mnerf_jax.augment import AUGMENTATION_NAMES, AUGMENTATIONS, PARAMS, STRENGTHS
-from mnerf_jax.jpeg import jpeg
+from mnerf_jax.imaging import augment, filters
+from mnerf_jax.imaging.augment import AUGMENTATION_NAMES, AUGMENTATIONS, PARAMS, STRENGTHS
+from mnerf_jax.imaging.jpeg import jpeg
 
 
 @functools.cache
@@ -154,9 +154,9 @@ def test_gaussian_blur_per_image_equals_dm_pix(kernel):
 
     x = jnp.asarray(_images((3, 12, 9, 3)))
     sigma = jnp.asarray([0.1, 0.8, 2.0])
-    padded = image_filters.pad_reflect(x, kernel // 2)
+    padded = filters.pad_reflect(x, kernel // 2)
     expected = jax.vmap(lambda im, s: pix.gaussian_blur(im, s, kernel, padding="VALID"))(padded, sigma)
-    got = image_filters.gaussian_blur_per_image(x, sigma, kernel)
+    got = filters.gaussian_blur_per_image(x, sigma, kernel)
     np.testing.assert_allclose(got, expected, atol=1e-6)
 
 
@@ -167,7 +167,7 @@ def test_median_sorting_network_sorts(n, seed, ties):
     rng = np.random.default_rng(seed)
     values = rng.integers(0, 3, n) if ties else rng.random(n)
     out = list(values)
-    for a, b in image_filters._sorting_network(n):
+    for a, b in filters._sorting_network(n):
         assert 0 <= a < b < n
         out[a], out[b] = min(out[a], out[b]), max(out[a], out[b])
     np.testing.assert_array_equal(out, np.sort(values))

@@ -7,9 +7,9 @@ import numpy as np
 import optax
 import pytest
 
-from mnerf_jax import checkpoint
-from mnerf_jax.checkpoint import CheckpointError, CheckpointStore, check_compatible, config_fingerprint
-from mnerf_jax.config import load_config
+from mnerf_jax.core import checkpoint, rundir
+from mnerf_jax.core.checkpoint import CheckpointError, CheckpointStore, check_compatible, config_fingerprint
+from mnerf_jax.core.config import load_config
 
 
 def _tree(scale: float, size: int = 4):
@@ -78,16 +78,15 @@ def test_config_differences_lists_changed_fields():
 def test_runs_written_under_an_older_digest_still_load(tmp_path):
     """A checkpoint or run whose stored digest predates a field becoming bookkeeping is accepted when its
     fields agree; a real difference is still refused."""
-    from mnerf_jax import run
 
     config = load_config("procedural")
     meta = {"fingerprint": "0123456789abcdef", "config": config.to_dict()}  # a digest no config gives
     check_compatible(meta, config, tmp_path)
     with pytest.raises(CheckpointError, match="train.n_iters"):
         check_compatible(meta, load_config("procedural", ["train.n_iters=999"]), tmp_path)
-    run.write_run_files(tmp_path / "r", config, data=None)
-    marker = tmp_path / "r" / run.RUN_MARKER
+    rundir.write_run_files(tmp_path / "r", config, data=None)
+    marker = tmp_path / "r" / rundir.RUN_MARKER
     marker.write_text(marker.read_text().replace(config_fingerprint(config), "0123456789abcdef"))
-    assert run.prepare_output(tmp_path / "r", config, resume=True)
-    with pytest.raises(run.RunError, match="train.n_iters"):
-        run.prepare_output(tmp_path / "r", load_config("procedural", ["train.n_iters=999"]), resume=True)
+    assert rundir.prepare_output(tmp_path / "r", config, resume=True)
+    with pytest.raises(rundir.RunError, match="train.n_iters"):
+        rundir.prepare_output(tmp_path / "r", load_config("procedural", ["train.n_iters=999"]), resume=True)

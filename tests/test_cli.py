@@ -9,6 +9,7 @@ import pytest
 from conftest import TINY_SCHEDULE as TINY
 
 from mnerf_jax import cli
+from mnerf_jax.core import rundir
 
 # The schedule of tests/test_train.py (same static shapes: its compilations are reused here).
 
@@ -94,10 +95,9 @@ def test_missing_data_and_missing_checkpoint_are_clear_errors(tmp_path, mnerf):
     )
     assert code == 2 and "no such scene directory" in err and not (tmp_path / "r").exists()
     # A run directory whose fit never reached a checkpoint.
-    from mnerf_jax import run as runs
-    from mnerf_jax.config import load_config
+    from mnerf_jax.core.config import load_config
 
-    runs.write_run_files(tmp_path / "empty", load_config("procedural", TINY), data=None)
+    rundir.write_run_files(tmp_path / "empty", load_config("procedural", TINY), data=None)
     for command in ("render", "evaluate"):
         extra = ["--out", str(tmp_path / "o")] if command == "render" else []
         code, _, err = mnerf(command, "--run", tmp_path / "empty", *extra)

@@ -7,7 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from mnerf_jax import cli, compare
+from mnerf_jax import cli
+from mnerf_jax.core import rundir
+from mnerf_jax.evaluation import compare
 
 BASE_SETTINGS = {"lambda_key": 0.2, "fidelity_psnr": 0.0, "seed": 0, "key_seed": 0, "time_budget_min": 60.0,
                  "wm_ranks": [8, 8, 8]}  # fmt: skip
@@ -134,9 +136,8 @@ def test_cli_bad_run_is_one_error_line(tmp_path: Path, capsys) -> None:
 
 
 def test_the_watermark_kind_is_the_run_loaders() -> None:
-    from mnerf_jax import run
 
-    assert compare.WATERMARK_KIND == run.WATERMARK_KIND
+    assert compare.WATERMARK_KIND == rundir.WATERMARK_KIND
 
 
 def test_worst_id_named_is_the_lowest_diagonal_share_of_the_decision_confusion() -> None:

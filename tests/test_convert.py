@@ -17,9 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mnerf_jax import convert, decoder_io
-from mnerf_jax import decoder as dec
-from mnerf_jax.errors import MnerfError
+from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.reader import convert, decoder_io
+from mnerf_jax.reader import decoder as dec
 
 # ------------------------------------------------------------------------------------------------------------
 # A minimal pickle writer (protocol 2 opcodes)

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from mnerf_jax.config import DataConfig, RenderConfig
+from mnerf_jax.core.config import DataConfig, RenderConfig
 from mnerf_jax.data import (
     DataError,
     DataWarning,

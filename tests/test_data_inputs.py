@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from mnerf_jax.config import DataConfig
+from mnerf_jax.core.config import DataConfig
+from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.data import DataError, load_scene, procedural_scene_dir
-from mnerf_jax.errors import MnerfError
 
 EYE = np.eye(4).tolist()
 

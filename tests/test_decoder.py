@@ -12,18 +12,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mnerf_jax import decoder as dec
-from mnerf_jax import (
-    decoder_checkpoint,
-    decoder_config,
-    decoder_io,
-    decoder_steps,
-    decoder_train,
-    dwt,
-    hidden_encoder,
-    informed,
-)
-from mnerf_jax.errors import MnerfError
+from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.reader import decoder as dec
+from mnerf_jax.reader import decoder_io, dwt
+from mnerf_jax.reader.train import checkpoint as decoder_checkpoint
+from mnerf_jax.reader.train import hidden_encoder, informed, recipe, stages
+from mnerf_jax.reader.train import steps as decoder_steps
 
 
 @pytest.fixture(scope="module")
@@ -287,12 +281,12 @@ def test_pool_margin_is_saved_fingerprinted_and_absent_in_older_files(
 
 
 def test_training_with_a_pool_margin_needs_large_enough_images(tmp_path: Path) -> None:
-    cfg = decoder_train.DecoderTrainConfig(bits=8, pool_margin=9)  # 64-px windows: LL2 16 ≤ 18
+    cfg = stages.DecoderTrainConfig(bits=8, pool_margin=9)  # 64-px windows: LL2 16 ≤ 18
     with pytest.raises(MnerfError, match="--pool-margin 9 leaves no positions to pool in 64-px"):
-        decoder_train.train_decoder(cfg, tmp_path / "run", progress=False)
+        stages.train_decoder(cfg, tmp_path / "run", progress=False)
     assert not (tmp_path / "run" / "checkpoint.msgpack").exists()
-    cfg = decoder_train.DecoderTrainConfig(bits=8, pool_margin=9, size=80, informed_sizes=(80,), batch=2)
-    assert dec.pool_margin(decoder_train.init_state(cfg)[0]["decoder"]) == 9
+    cfg = stages.DecoderTrainConfig(bits=8, pool_margin=9, size=80, informed_sizes=(80,), batch=2)
+    assert dec.pool_margin(stages.init_state(cfg)[0]["decoder"]) == 9
 
 
 @pytest.mark.parametrize("bits", decoder_io.SHIPPED_BITS)
@@ -311,7 +305,7 @@ def test_shipped_decoder_reproduces_recorded_accuracy(bits: int) -> None:
     # Float differences between machines may flip a bit whose logit is ~0: allow two of them.
     assert abs(acc - recorded["check_batch_bit_acc"]) <= 2.0 / message.size
     # Unwatermarked images decode to (near) random bits through the whitened decoder.
-    clean = decoder_train.heldout_images(len(images), images.shape[1])
+    clean = stages.heldout_images(len(images), images.shape[1])
     clean_acc = float(
         jnp.mean((dec.decode_logits(loaded.variables, jnp.asarray(clean)) > 0) == (jnp.asarray(message) > 0))
     )
@@ -326,7 +320,7 @@ def test_shipped_decoder_missing_bits() -> None:
 def test_short_training_run_learns(tmp_path: Path) -> None:
     """A tiny run of every stage: the informed stage lifts accuracy clearly above chance, the joint and
     fine-tuning steps run, whitening is fitted, files are written and load."""
-    cfg = decoder_train.DecoderTrainConfig(
+    cfg = stages.DecoderTrainConfig(
         bits=8,
         informed_steps=60,
         informed_sizes=(32,),
@@ -348,7 +342,7 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
         eval_informed_iterations=(1,),
         check_images=4,
     )
-    metrics = decoder_train.train_decoder(cfg, tmp_path, progress=False, checkpoint_every=40)
+    metrics = stages.train_decoder(cfg, tmp_path, progress=False, checkpoint_every=40)
     # 64 held-out images × 8 bits: chance is 0.5 ± 0.022. The informed embedding through the whitened
     # decoder must be clearly above it; the joint steps, whitening and the encoder steps are exercised,
     # not judged.
@@ -365,14 +359,14 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
     assert saved_cfg == cfg
     with np.load(tmp_path / "check.npz", allow_pickle=False) as check:
         stored, message = check["images"], check["bits"]
-    again = hidden_encoder.encode_batch(cfg, encoder, decoder_train.heldout_images(4, 32), message)
+    again = hidden_encoder.encode_batch(cfg, encoder, stages.heldout_images(4, 32), message)
     np.testing.assert_array_equal(np.round(again * 255).astype(np.uint8), stored)  # the encoder round-trips
     with pytest.raises(MnerfError, match="pass --resume"):
-        decoder_train.train_decoder(cfg, tmp_path, progress=False)
+        stages.train_decoder(cfg, tmp_path, progress=False)
     # The checkpoint refuses other settings.
-    other = decoder_train.DecoderTrainConfig(**{**cfg.to_dict(), "batch": 8})
+    other = stages.DecoderTrainConfig(**{**cfg.to_dict(), "batch": 8})
     with pytest.raises(MnerfError, match="other settings"):
-        decoder_train.train_decoder(other, tmp_path, resume=True, progress=False)
+        stages.train_decoder(other, tmp_path, resume=True, progress=False)
 
     # An encoder trained anew for the finished decoder, at two sides in turn: the decoder is copied as it is
     # (same fingerprint, its training record kept) and the figures are re-measured with the new encoder.
@@ -381,30 +375,30 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
         decoder_from=str(tmp_path / "decoder.npz"),
     )  # fmt: skip
     with pytest.raises(MnerfError, match="--informed-steps 0 --steps 0"):
-        decoder_train.train_decoder(dataclasses.replace(refit, steps=2), tmp_path / "bad", progress=False)
+        stages.train_decoder(dataclasses.replace(refit, steps=2), tmp_path / "bad", progress=False)
     with pytest.raises(MnerfError, match="decodes 8-bit messages, but 16 bits"):
-        decoder_train.train_decoder(dataclasses.replace(refit, bits=16), tmp_path / "bad16", progress=False)
+        stages.train_decoder(dataclasses.replace(refit, bits=16), tmp_path / "bad16", progress=False)
     assert not (tmp_path / "bad16").exists()  # refused before anything is written
-    again_metrics = decoder_train.train_decoder(refit, tmp_path / "refit", progress=False)
+    again_metrics = stages.train_decoder(refit, tmp_path / "refit", progress=False)
     assert again_metrics["fingerprint"] == loaded.fingerprint
     assert set(again_metrics["heldout"]) == {"32px"}
     record = decoder_io.load_decoder(tmp_path / "refit" / "decoder.npz").metadata["training"]
     assert record["config"]["informed_steps"] == 60
     assert record["encoder_refit"]["config"]["finetune_steps"] == 4
-    assert [decoder_train.side_and_batch(refit, (32, 48), i)[0] for i in range(3)] == [32, 48, 32]
+    assert [stages.side_and_batch(refit, (32, 48), i)[0] for i in range(3)] == [32, 48, 32]
 
 
 def test_informed_step_with_a_margin_reads_windows_and_updates_the_decoder() -> None:
     """With ``informed_margin`` the decoder reads a smaller random window of each encoded image; the step
     still updates the decoder, with finite metrics, and keeps its pooling margin (1: LL2 windows of 4²)."""
-    cfg = decoder_train.DecoderTrainConfig(bits=8, size=16, informed_margin=4, batch=2, informed_steps=4,
+    cfg = stages.DecoderTrainConfig(bits=8, size=16, informed_margin=4, batch=2, informed_steps=4,
                                            informed_sizes=(16,), pool_margin=1)  # fmt: skip
-    state, (_, _, tx_inf, _) = decoder_train.init_state(cfg)
+    state, (_, _, tx_inf, _) = stages.init_state(cfg)
     step = decoder_steps.make_informed_step(cfg, tx_inf, augmented=False)
     arrays = {k: state[k] for k in decoder_checkpoint.ARRAY_KEYS}
     before = jax.tree.map(np.asarray, arrays["decoder"]["params"])
-    images = jnp.asarray(decoder_train.heldout_images(2, 20))
-    bits = jnp.asarray(decoder_train.heldout_messages(2, 8))
+    images = jnp.asarray(stages.heldout_images(2, 20))
+    bits = jnp.asarray(stages.heldout_messages(2, 8))
     for i in range(2):  # the learning rate warms up from 0 at the first step
         arrays, metrics = step(arrays, images, bits, jax.random.PRNGKey(i), jnp.float32(25.0))
         assert all(np.isfinite(float(v)) for v in metrics.values()) and float(metrics["skipped"]) == 0.0
@@ -417,18 +411,18 @@ def test_informed_step_with_a_margin_reads_windows_and_updates_the_decoder() -> 
 def test_finetune_step_with_a_learning_decoder_keeps_its_whitening_and_statistics() -> None:
     """Stage 4 with ``finetune_decoder_lr``: the encoder and the decoder's weights move; the whitening layer
     and BatchNorm running statistics (what the encoder writes for) stay as they were."""
-    cfg = decoder_train.DecoderTrainConfig(bits=8, size=16, batch=2, finetune_steps=4, clean_fraction=1.0,
+    cfg = stages.DecoderTrainConfig(bits=8, size=16, batch=2, finetune_steps=4, clean_fraction=1.0,
                                            finetune_decoder_lr=1e-3, finetune_decoder_start=0.5)  # fmt: skip
-    assert decoder_config.finetune_decoder_start_step(cfg) == 2 and decoder_train.decoder_learned(cfg)
+    assert recipe.finetune_decoder_start_step(cfg) == 2 and stages.decoder_learned(cfg)
     frozen = dataclasses.replace(cfg, finetune_decoder_lr=0.0)
-    assert decoder_config.finetune_decoder_start_step(frozen) == 4
-    assert not decoder_train.decoder_learned(frozen)
-    state, (_, tx_ft, _, tx_ft_dec) = decoder_train.init_state(cfg)
+    assert recipe.finetune_decoder_start_step(frozen) == 4
+    assert not stages.decoder_learned(frozen)
+    state, (_, tx_ft, _, tx_ft_dec) = stages.init_state(cfg)
     step = decoder_steps.make_finetune_step(cfg, tx_ft, tx_ft_dec)
     arrays = {k: state[k] for k in decoder_checkpoint.ARRAY_KEYS}
     before = jax.tree.map(np.asarray, {"encoder": arrays["encoder"], "decoder": arrays["decoder"]})
-    images = jnp.asarray(decoder_train.heldout_images(2, 16))
-    bits = jnp.asarray(decoder_train.heldout_messages(2, 8))
+    images = jnp.asarray(stages.heldout_images(2, 16))
+    bits = jnp.asarray(stages.heldout_messages(2, 8))
     for i in range(2):  # the learning rates warm up from 0 at the first step
         arrays, metrics = step(arrays, images, bits, jax.random.PRNGKey(i), jnp.float32(35.5))
         assert float(metrics["skipped"]) == 0.0 and np.isfinite(float(metrics["loss"]))
@@ -455,8 +449,8 @@ def test_recentring_the_whitening_standardises_each_logit_and_keeps_the_rotation
 
 
 def test_checkpoint_round_trip(tmp_path: Path) -> None:
-    cfg = decoder_train.DecoderTrainConfig(bits=8)
-    state, _ = decoder_train.init_state(cfg)
+    cfg = stages.DecoderTrainConfig(bits=8)
+    state, _ = stages.init_state(cfg)
     state["step"], state["whitened"], state["elapsed_s"] = 17, True, 3.5
     decoder_checkpoint.save_checkpoint(tmp_path / "c.msgpack", state, cfg)
     template = jax.tree.map(jnp.zeros_like, {k: state[k] for k in decoder_checkpoint.ARRAY_KEYS})
@@ -487,7 +481,7 @@ def test_informed_embedding_follows_the_decoder_gradient() -> None:
     patterns = jax.random.normal(key_p, (8, 16, 16, 3))
     images = 0.25 + 0.5 * jax.random.uniform(key_x, (4, 16, 16, 3))
     logits_of = lambda x: jnp.einsum("bhwc,lhwc->bl", x - 0.5, patterns) / (16 * 16 * 3)
-    bits = jnp.asarray(decoder_train.heldout_messages(4, 8))
+    bits = jnp.asarray(stages.heldout_messages(4, 8))
     for iterations in (1, 3):
         encoded = informed.informed_embed(logits_of, images, bits, psnr=25.0, iterations=iterations)
         assert float(encoded.min()) >= 0.0 and float(encoded.max()) <= 1.0
@@ -504,31 +498,31 @@ def test_informed_embedding_follows_the_decoder_gradient() -> None:
 
 
 def test_encoder_respects_psnr() -> None:
-    cfg = decoder_train.DecoderTrainConfig(bits=16, target_psnr=35.5)
+    cfg = stages.DecoderTrainConfig(bits=16, target_psnr=35.5)
     enc = hidden_encoder.init_encoder(jax.random.PRNGKey(0), 16)
-    images = jnp.asarray(decoder_train.heldout_images(4, 48))
-    bits = jnp.asarray(decoder_train.heldout_messages(4, 16))
+    images = jnp.asarray(stages.heldout_images(4, 48))
+    bits = jnp.asarray(stages.heldout_messages(4, 16))
     encoded, _ = hidden_encoder.encode(enc, images, bits, cfg)
     assert encoded.shape == images.shape
     assert float(encoded.min()) >= 0.0 and float(encoded.max()) <= 1.0
     mse = jnp.mean((encoded - images) ** 2, axis=(1, 2, 3))
     assert float(jnp.min(-10 * jnp.log10(mse))) >= 35.5 - 1e-3
-    assert decoder_train.psnr_schedule(decoder_train.DecoderTrainConfig(steps=100), 0) == 20.0
-    assert decoder_train.psnr_schedule(decoder_train.DecoderTrainConfig(steps=100), 99) == 35.5
+    assert stages.psnr_schedule(stages.DecoderTrainConfig(steps=100), 0) == 20.0
+    assert stages.psnr_schedule(stages.DecoderTrainConfig(steps=100), 99) == 35.5
 
 
 def test_unknown_decoder_init_is_refused_before_anything_is_written(tmp_path: Path) -> None:
-    cfg = decoder_train.DecoderTrainConfig(bits=8, decoder_init="gabor")
+    cfg = stages.DecoderTrainConfig(bits=8, decoder_init="gabor")
     with pytest.raises(MnerfError, match="--decoder-init must be one of random, filterbank"):
-        decoder_train.train_decoder(cfg, tmp_path / "run", progress=False)
+        stages.train_decoder(cfg, tmp_path / "run", progress=False)
     assert not (tmp_path / "run" / "checkpoint.msgpack").exists()
 
 
 def test_encoder_size_comes_from_the_command_line_and_is_checked(tmp_path: Path, mnerf) -> None:
     code, _, err = mnerf("train-decoder", "--bits", "8", "--out", tmp_path / "run", "--encoder-channels", "0")
     assert code == 2 and "--encoder-channels must be ≥ 1" in err and not (tmp_path / "run").exists()
-    cfg = decoder_train.DecoderTrainConfig(bits=8, encoder_channels=8, encoder_depth=1)
-    encoder = decoder_train.init_state(cfg)[0]["encoder"]
+    cfg = stages.DecoderTrainConfig(bits=8, encoder_channels=8, encoder_depth=1)
+    encoder = stages.init_state(cfg)[0]["encoder"]
     kernels = [leaf.shape for path, leaf in jax.tree_util.tree_leaves_with_path(encoder["params"])
                if "kernel" in jax.tree_util.keystr(path)]  # fmt: skip
     assert len(kernels) == 1 + 2 + 1 and kernels[0][-1] == 8  # depth 1, two blocks after the message, 1×1 out
@@ -537,8 +531,8 @@ def test_encoder_size_comes_from_the_command_line_and_is_checked(tmp_path: Path,
 def test_checkpoint_from_before_decoder_init_existed_reads_as_random(tmp_path: Path) -> None:
     import flax.serialization
 
-    cfg = decoder_train.DecoderTrainConfig(bits=8, decoder_init="random")
-    state, _ = decoder_train.init_state(cfg)
+    cfg = stages.DecoderTrainConfig(bits=8, decoder_init="random")
+    state, _ = stages.init_state(cfg)
     path = tmp_path / "c.msgpack"
     decoder_checkpoint.save_checkpoint(path, state, cfg)
     payload = flax.serialization.msgpack_restore(path.read_bytes())
@@ -547,6 +541,6 @@ def test_checkpoint_from_before_decoder_init_existed_reads_as_random(tmp_path: P
     payload["config"] = json.dumps(config)
     path.write_bytes(flax.serialization.msgpack_serialize(payload))
     assert decoder_checkpoint.load_checkpoint(path, state, cfg)["step"] == 0
-    other = decoder_train.DecoderTrainConfig(bits=8, decoder_init="filterbank")
+    other = stages.DecoderTrainConfig(bits=8, decoder_init="filterbank")
     with pytest.raises(MnerfError, match="decoder_init: random -> filterbank"):
         decoder_checkpoint.load_checkpoint(path, state, other)

@@ -15,14 +15,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import decoder as decoder_lib
-from mnerf_jax import decoder_io, decoder_refit, dwt, embed_budget, wm_run
-from mnerf_jax import embed as E
-from mnerf_jax.config import WatermarkConfig
+from mnerf_jax.core.config import WatermarkConfig
+from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.data import trajectory
 from mnerf_jax.data.types import Cameras, NDCSpace
-from mnerf_jax.errors import MnerfError
-from mnerf_jax.wm_step import phase_of
+from mnerf_jax.reader import decoder as decoder_lib
+from mnerf_jax.reader import decoder_io, dwt
+from mnerf_jax.watermark import embed as E
+from mnerf_jax.watermark import phase3 as decoder_refit
+from mnerf_jax.watermark import run as wm_run
+from mnerf_jax.watermark import time_budget
+from mnerf_jax.watermark.step import phase_of
 
 if TYPE_CHECKING:
     from conftest import TinyRuns  # the `tiny` fixture's type (tests/conftest.py)
@@ -163,7 +166,7 @@ def test_phase_three_weighs_its_negatives_by_its_own_weight_not_phase_twos() -> 
 def test_a_run_from_before_a_phase_3_setting_existed_counts_it_at_its_default(tmp_path) -> None:
     # A finished run whose config.json predates phase3_lambda_clean ran it at its default: resuming it under
     # the same settings is the no-op, not a refusal; another phase-3 setting is still refused.
-    from mnerf_jax.config import Config
+    from mnerf_jax.core.config import Config
 
     wm = WatermarkConfig(phase1_steps=2, phase2_steps=3, phase3_steps=4)
     saved = {k: getattr(wm, k) for k in wm_run.PHASE3_DEFAULTS if k != "phase3_lambda_clean"}
@@ -213,7 +216,7 @@ def test_phase_three_sizes_its_schedule_to_the_minutes_left() -> None:
 def test_phase_three_follows_the_fields_schedule_and_the_budget_keeps_room_for_it() -> None:
     cfg = WatermarkConfig(phase1_steps=2, phase2_steps=3, phase3_steps=4)
     assert [phase_of(s, cfg) for s in range(7)] == [1, 1, 2, 2, 2, 3, 3]
-    clock = embed_budget.BudgetClock(budget_s=100.0, started=0.0, kept_s=30.0)
+    clock = time_budget.BudgetClock(budget_s=100.0, started=0.0, kept_s=30.0)
     clock.record_step(1.0)
     # 1 s step + 5 s checkpoint + 45 s reserve + 30 s kept: the last step starts by t = 19 s.
     assert clock.room_for_a_step(19.0) and not clock.room_for_a_step(19.5)
@@ -221,7 +224,7 @@ def test_phase_three_follows_the_fields_schedule_and_the_budget_keeps_room_for_i
 
 
 def test_phase_three_settings_are_checked() -> None:
-    from mnerf_jax.watermark import WatermarkError, check_config
+    from mnerf_jax.watermark.model import WatermarkError, check_config
 
     for bad in ({"phase3_steps": -1}, {"phase3_views": -2}, {"phase3_batch": 0}, {"phase3_lr": 0.0},
                 {"phase3_reserve_min": -1.0}, {"phase3_lambda_clean": -0.1}, {"phase3_view_density": "cube"},
@@ -268,7 +271,7 @@ def test_a_field_the_time_budget_ends_still_gets_phase_three(
     # minutes kept for it (here the clock finds no room for a third field step, and all the time phase 3
     # needs). Its checkpoint lies past the field's schedule, so --resume finds the run finished.
     two_steps = lambda self, now: len(self.step_seconds) < 2  # noqa: E731
-    monkeypatch.setattr(embed_budget.BudgetClock, "room_for_a_step", two_steps)
+    monkeypatch.setattr(time_budget.BudgetClock, "room_for_a_step", two_steps)
     run = tiny.root / "p3_cut"
     overrides = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=3",
                  "watermark.phase3_steps=4", "watermark.phase3_views=2", "watermark.phase3_batch=4",
@@ -294,7 +297,7 @@ def test_a_field_the_time_budget_ends_still_gets_phase_three(
 def test_novel_views_on_a_forward_facing_scene_are_refused_before_anything_is_written(
     tiny: TinyRuns, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from mnerf_jax import run as runs
+    from mnerf_jax.tensorf import run as runs
 
     real = runs.LoadedRun.load_scene
 
@@ -317,10 +320,10 @@ def test_novel_views_on_a_forward_facing_scene_are_refused_before_anything_is_wr
 def test_the_refit_set_reuses_clean_renders_of_the_training_views_it_is_given(tiny: TinyRuns) -> None:
     # The embedding's quality budget has already rendered the training views with the clean model (float16
     # references); phase 3 then renders only the novel views clean, and its set is the same.
-    from mnerf_jax import run as runs
+    from mnerf_jax.tensorf import run as runs
 
     wm = wm_run.load_watermarked_run(tiny.wm)
-    clean = runs.load_run(tiny.fit)
+    clean = wm_run.load_run(tiny.fit)
     split = wm.load_scene(None, splits=("train",)).split("train")
     cfg = dataclasses.replace(wm.config.watermark, phase3_views=2)
     rendered = decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images, clean)

@@ -12,7 +12,7 @@ import pywt
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import dwt
+from mnerf_jax.reader import dwt
 
 TOL = 1e-5
 

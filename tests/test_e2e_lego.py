@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mnerf_jax import chunked, metrics, render, train
-from mnerf_jax.config import load_config
+from mnerf_jax.core.config import load_config
 from mnerf_jax.data import camera_rays, load_scene
+from mnerf_jax.imaging import metrics
+from mnerf_jax.tensorf import chunked, render
+from mnerf_jax.tensorf.fit import loop as train
 
 # 32^3 -> 64^3 (over the original box) after step 80, an alpha mask and box shrink at step 60,
 # 160 steps of 256 rays: 83 s alone on the 2-core machine, about half of it compilation (512 rays: 96 s,

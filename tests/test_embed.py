@@ -15,12 +15,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import decoder_io, dwt, raymarch, watermark, wm_run
-from mnerf_jax import deferred as D
-from mnerf_jax import embed as E
-from mnerf_jax import embed_inputs as EI
-from mnerf_jax import wm_step as S
-from mnerf_jax.errors import MnerfError
+from mnerf_jax.core import rundir
+from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.reader import decoder_io, dwt
+from mnerf_jax.tensorf import raymarch
+from mnerf_jax.watermark import deferred as D
+from mnerf_jax.watermark import embed as E
+from mnerf_jax.watermark import inputs as EI
+from mnerf_jax.watermark import model as watermark
+from mnerf_jax.watermark import run as wm_run
+from mnerf_jax.watermark import step as S
 
 if TYPE_CHECKING:
     from conftest import TinyRuns  # the `tiny` fixture's type (tests/conftest.py)
@@ -208,8 +212,9 @@ def _small_watermarked_scene(cfg, num_ids: int, h: int, w: int) -> tuple:
     """``(model, params, geometry, rays, targets [h·w, 3])``: a random watermarked TensoRF on a 6³ grid with
     semi-transparent matter (σ ≈ 2, Δt = 0.3, distance scale 1: every sample gets gradient), seen by an
     ``h × w`` pinhole camera at z = 4."""
-    from mnerf_jax import field, watermark
-    from mnerf_jax.config import ModelConfig
+    from mnerf_jax.core.config import ModelConfig
+    from mnerf_jax.tensorf import field
+    from mnerf_jax.watermark import model as watermark
 
     model = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(3, 3, 3), app_features=6, mlp_width=16,
                         density_shift=0.0)  # fmt: skip
@@ -234,8 +239,11 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
     # Watson, and the phase-2 patch loss (L1 + TV + SSIM) on overlapping 11-px patches of a 13×12 image.
     # (The single-patch path, one render on the graph, is test_deferred_gradient_equals_direct_gradient
     # [8-8-8]; a second real-renderer case for it cost 15 s of compiling and tested no other code.)
-    from mnerf_jax import decoder, losses, render, watermark
-    from mnerf_jax.config import WatermarkConfig
+    from mnerf_jax.core.config import WatermarkConfig
+    from mnerf_jax.imaging import losses
+    from mnerf_jax.reader import decoder
+    from mnerf_jax.tensorf import render
+    from mnerf_jax.watermark import model as watermark
 
     cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
     model, params, geometry, rays, targets = _small_watermarked_scene(cfg, 3, h, w)
@@ -280,8 +288,9 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
 def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_message() -> None:
     # watermark.lambda_clean adds λ·BCE(decoder(ground truth), ½) in phase 2: a constant in the image (the
     # field's gradient is unchanged) that trains the decoder to read nothing from unwatermarked images.
-    from mnerf_jax import decoder, losses
-    from mnerf_jax.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.imaging import losses
+    from mnerf_jax.reader import decoder
 
     dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
     image = jax.random.uniform(jax.random.PRNGKey(1), (24, 24, 3))
@@ -341,28 +350,27 @@ def test_deferred_memory_follows_the_patch_not_the_image() -> None:
 
 
 def test_tiny_embed_writes_a_complete_watermarked_run(tiny: TinyRuns) -> None:
-    from mnerf_jax import keys as K
-    from mnerf_jax import run as runs
+    from mnerf_jax.reader import keys as K
 
     wm = tiny.wm
     for name in ("run.json", "config.json", "keys.json", "decoder.npz", "embed.json"):
         assert (wm / name).is_file(), name
-    marker = runs.read_marker(wm)
+    marker = rundir.read_marker(wm)
     assert marker["kind"] == "multinerf" and marker["num_ids"] == 2 and marker["bits"] == 8
     keys = K.load_keys(wm, expect_bits=8)
     assert keys.num_ids == 2 and K.min_pairwise_hamming(keys.messages) >= keys.min_hamming >= 2
     progress = json.loads((wm / "embed.json").read_text())
     assert progress["steps_done"] == 80 and progress["phase"] == 2
     # The decoder was fine-tuned in phase 2, and keys.json names the decoder saved with the run.
-    from mnerf_jax import decoder_io
+    from mnerf_jax.reader import decoder_io
 
     saved = decoder_io.load_decoder(wm / "decoder.npz")
     start = decoder_io.load_decoder(tiny.decoder)
     assert keys.decoder_fingerprint == saved.fingerprint != start.fingerprint
-    loaded = runs.load_run(wm)
+    loaded = wm_run.load_run(wm)
     assert loaded.kind == "multinerf" and loaded.step == 80 and loaded.extras["num_ids"] == 2
     # Training curves: TensorBoard scalars, each the mean of 10 steps, at steps 10, 20, ..., 80.
-    from mnerf_jax.scalar_log import read_scalars
+    from mnerf_jax.core.scalar_log import read_scalars
 
     curves = read_scalars(wm / "tb")
     assert set(curves) >= {"train/bit_acc", "train/psnr", "train/bce", "train/loss"}
@@ -371,7 +379,6 @@ def test_tiny_embed_writes_a_complete_watermarked_run(tiny: TinyRuns) -> None:
 
 
 def test_loaded_run_renders_each_id_differently(tiny: TinyRuns) -> None:
-    from mnerf_jax import run as runs
 
     loaded = wm_run.load_watermarked_run(tiny.wm)
     split = loaded.load_scene(splits=("test",)).split("test")
@@ -387,15 +394,14 @@ def test_loaded_run_renders_each_id_differently(tiny: TinyRuns) -> None:
     assert wm_run.with_id(loaded, 1).extras["id"] == 1
     with pytest.raises(MnerfError, match="outside"):
         wm_run.with_id(loaded, 2)
-    plain = runs.load_run(tiny.fit)
+    plain = wm_run.load_run(tiny.fit)
     with pytest.raises(MnerfError, match="not a watermarked run"):
         wm_run.with_id(plain, 0)
 
 
 def test_embedding_config_records_the_schedule_it_runs(tiny: TinyRuns) -> None:
-    from mnerf_jax import run as runs
 
-    source = runs.load_run(tiny.fit)
+    source = wm_run.load_run(tiny.fit)
     wm = E.resolve_config(source, None, [], 16, 16).watermark
     # Both phases from the procedural preset (100 + 1,600); -1 is by the number of IDs.
     assert (wm.phase1_steps, wm.phase2_steps) == (100, 1600)
@@ -471,7 +477,7 @@ def test_the_budget_sizes_the_fields_schedule_to_the_time_left() -> None:
     # 100 s budget, 30 s kept for phase 3, 45 s reserve, 5 s checkpoints every 10 steps, 1 s steps: at 10 s,
     # 10 s of field time are left, 1.5 s a step, 97 % of it: 6 more steps. Never longer than the schedule,
     # never shorter than the next step.
-    from mnerf_jax import embed_budget as B
+    from mnerf_jax.watermark import time_budget as B
 
     clock = B.BudgetClock(budget_s=100.0, started=0.0, kept_s=30.0)
     assert B.sized_field_steps(clock, 10.0, 10, 100, 10) == 100  # nothing timed yet
@@ -488,7 +494,7 @@ def test_a_budget_sized_field_records_its_schedule_and_resumes_it(
     # With watermark.budget_sizes_field the loop asks, after FIELD_SIZING_STEPS timed steps, how many of the
     # field's steps the budget holds (here: 14 of 22) and ends the schedule there: the run's config.json and
     # checkpoints record 2 + 12 steps, and --resume under the preset's longer schedule finds it finished.
-    from mnerf_jax import embed_budget as B
+    from mnerf_jax.watermark import time_budget as B
 
     monkeypatch.setattr(B, "sized_field_steps", lambda clock, now, step, total, every: 14)
     overrides = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=20",
@@ -569,25 +575,24 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, m
 
 def test_watermarked_run_without_keys_or_with_foreign_keys_is_refused(tiny: TinyRuns, tmp_path: Path,
                                                                       mnerf) -> None:  # fmt: skip
-    from mnerf_jax import keys as K
-    from mnerf_jax import run as runs
+    from mnerf_jax.reader import keys as K
 
     copy = tmp_path / "wm"
     shutil.copytree(tiny.wm, copy)
     (copy / "keys.json").unlink()
     with pytest.raises(MnerfError, match="no keys.json"):
-        runs.load_run(copy)
+        wm_run.load_run(copy)
     code, _, err = mnerf("embed", "--from", tiny.fit, "--out", copy, "--num-ids", "2", "--bits", "8",
                          "--decoder", tiny.decoder, "--resume", "--quiet")  # fmt: skip
     assert code == 2 and "no keys.json" in err
     # Keys of another bit length than the run's decoder.
     K.save_keys(copy, K.generate_keys(2, 16, 0, 0))
     with pytest.raises(MnerfError, match="16 bits but the decoder reads 8"):
-        runs.load_run(copy)
+        wm_run.load_run(copy)
     # Keys made for another decoder.
     K.save_keys(copy, K.generate_keys(2, 8, 0, 0, decoder_fingerprint="0" * 64))
     with pytest.raises(MnerfError, match="embedded for decoder"):
-        runs.load_run(copy)
+        wm_run.load_run(copy)
 
 
 def test_non_rgb_images_are_refused() -> None:
@@ -602,8 +607,9 @@ def test_non_rgb_images_are_refused() -> None:
 
 
 def _wm_params(variant: str) -> dict:
-    from mnerf_jax import field, watermark
-    from mnerf_jax.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.tensorf import field
+    from mnerf_jax.watermark import model as watermark
 
     model = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(2, 2, 2), app_features=4, mlp_width=8)
     cfg = WatermarkConfig(variant=variant, wm_ranks=(2, 2, 2), num_ids=1 if variant == "waterf" else 3)
@@ -666,7 +672,7 @@ def test_learning_rates_decay_exponentially() -> None:
 
 
 def test_phases_and_step_choices_are_deterministic() -> None:
-    from mnerf_jax.config import WatermarkConfig
+    from mnerf_jax.core.config import WatermarkConfig
 
     cfg = WatermarkConfig(phase1_steps=3, phase2_steps=2)
     assert [S.phase_of(s, cfg) for s in range(5)] == [1, 1, 1, 2, 2]
@@ -685,7 +691,7 @@ def test_phases_and_step_choices_are_deterministic() -> None:
 def test_step_config_keeps_what_the_compiled_step_reads() -> None:
     # Runs that differ only in host-side fields (the schedule, seeds, checkpoints, the time budget) share one
     # compiled step (the decay's length is its argument); every loss weight still tells steps apart.
-    from mnerf_jax.config import WatermarkConfig
+    from mnerf_jax.core.config import WatermarkConfig
 
     base = WatermarkConfig(phase1_steps=40, phase2_steps=40)
     same = WatermarkConfig(phase1_steps=2, phase2_steps=78, seed=5, key_seed=3, checkpoint_every=7,
@@ -700,8 +706,9 @@ def test_step_config_keeps_what_the_compiled_step_reads() -> None:
 
 def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.MonkeyPatch) -> None:
     # watermark.augment_names reaches the policy inside the phase-2 image loss (traced, not run).
-    from mnerf_jax import augment, decoder
-    from mnerf_jax.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.imaging import augment
+    from mnerf_jax.reader import decoder
 
     seen: list[tuple[str, ...] | None] = []
     real = augment.random_policy
@@ -726,8 +733,8 @@ def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.M
 def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
     # watermark.ids_per_step: one deferred step on K IDs' renders of a view equals the mean over the K IDs of
     # the direct (full-graph) gradient of that ID's objective alone: the IDs share the render, not the loss.
-    from mnerf_jax import decoder
-    from mnerf_jax.config import WatermarkConfig
+    from mnerf_jax.core.config import WatermarkConfig
+    from mnerf_jax.reader import decoder
 
     # lambda_key = 0: the key cross-entropy depends on the set of IDs, so it is not a mean over them.
     cfg = WatermarkConfig(wm_ranks=(2, 2, 2), augment_per_step=0, jitter=False, lambda_ssim=0.0,
@@ -776,8 +783,9 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
     # watermark.id_loss_power p: the renders' gradient is that of Σ_k w_k·BCE_k with w ∝ BCE^p held constant;
     # the decoder's gradient and the value stay the plain mean's. p = 0 is the plain mean throughout, and one
     # ID is its own BCE whatever p.
-    from mnerf_jax import losses, watermark
-    from mnerf_jax.config import WatermarkConfig
+    from mnerf_jax.core.config import WatermarkConfig
+    from mnerf_jax.imaging import losses
+    from mnerf_jax.watermark import model as watermark
 
     renders = jax.random.uniform(jax.random.PRNGKey(0), (4, 3, 3, 3))
     dec = jax.random.normal(jax.random.PRNGKey(1), (27, 8)) * 0.1
@@ -819,8 +827,8 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
 def test_key_term_is_the_key_cross_entropy_with_its_gradient_to_renders_and_decoder() -> None:
     # watermark.lambda_key: the same logits as the BCE, the gradient of key_cross_entropy(decode(r, p)) to
     # both sides, with the plain mean and with id_loss_power's two decoder passes alike.
-    from mnerf_jax import losses
-    from mnerf_jax.config import WatermarkConfig
+    from mnerf_jax.core.config import WatermarkConfig
+    from mnerf_jax.imaging import losses
 
     renders = jax.random.uniform(jax.random.PRNGKey(0), (3, 3, 3, 3))
     dec = jax.random.normal(jax.random.PRNGKey(1), (27, 8)) * 0.1
@@ -853,8 +861,8 @@ def test_key_term_is_the_key_cross_entropy_with_its_gradient_to_renders_and_deco
 
 def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
     # watermark.fidelity_psnr: + λ·mean_k relu(MSE(render_k, clean) / 10^(−psnr/10) − 1): zero inside.
-    from mnerf_jax import decoder
-    from mnerf_jax.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.reader import decoder
 
     dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
     reference = jax.random.uniform(jax.random.PRNGKey(1), (24, 24, 3))
@@ -897,7 +905,7 @@ def test_fidelity_budget_ramps_linearly_in_db_over_the_schedule(
 ) -> None:
     # watermark.fidelity_psnr_start / fidelity_ramp: the start budget until the ramp, linear in dB across it,
     # the final budget after; never outside [start, final] and never loosening as the steps go on.
-    from mnerf_jax.config import WatermarkConfig
+    from mnerf_jax.core.config import WatermarkConfig
 
     last = min(first + width, 1.0)
     cfg = WatermarkConfig(fidelity_psnr=start + rise, fidelity_psnr_start=start, fidelity_ramp=(first, last))
@@ -918,7 +926,7 @@ def test_fidelity_budget_ramps_linearly_in_db_over_the_schedule(
 
 
 def test_fidelity_ramp_is_checked() -> None:
-    from mnerf_jax.config import WatermarkConfig
+    from mnerf_jax.core.config import WatermarkConfig
 
     with pytest.raises(MnerfError, match="fidelity_psnr_start"):
         watermark.check_config(WatermarkConfig(fidelity_psnr=30.0, fidelity_psnr_start=35.0))
@@ -935,8 +943,8 @@ def test_fidelity_ramp_is_checked() -> None:
 def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> None:
     # The ramp hands each step its MSE budget in the batch (no recompilation per value): a loss built with
     # fidelity_budget = the MSE of 35 dB equals one whose config says 35 dB, whatever the config says then.
-    from mnerf_jax import decoder
-    from mnerf_jax.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.reader import decoder
 
     dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
     reference, target = (jax.random.uniform(jax.random.PRNGKey(i), (24, 24, 3)) for i in (1, 2))
@@ -971,8 +979,8 @@ def test_embedding_steps_receive_the_ramps_budget(tiny: TinyRuns) -> None:
 def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
     # watermark.clean_negative = "clean_model": phase 2's clean term decodes the clean model's render of the
     # view instead of the ground-truth view; the rest of the loss is unchanged.
-    from mnerf_jax import decoder
-    from mnerf_jax.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.reader import decoder
 
     dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
     reference, target, image = (jax.random.uniform(jax.random.PRNGKey(i), (24, 24, 3)) for i in (1, 2, 3))
@@ -1003,7 +1011,7 @@ def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
 def test_clean_references_are_the_clean_models_renders_of_the_training_views(tiny: TinyRuns) -> None:
     # The quality budget's reference: every training view of the source run, rendered once as evaluation
     # renders it, kept in float16; each step's batch carries its view's.
-    from mnerf_jax import run as runs
+    from mnerf_jax.tensorf import run as runs
 
     source = E.load_source(tiny.fit)
     split = source.load_scene(None, splits=("train",)).split("train")

@@ -6,7 +6,7 @@ from __future__ import annotations
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import embed_budget as B
+from mnerf_jax.watermark import time_budget as B
 
 
 def test_the_first_step_always_runs_then_steps_are_judged_by_the_recent_ones() -> None:

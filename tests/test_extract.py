@@ -11,9 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mnerf_jax import cli, decoder_io, extract
-from mnerf_jax import decoder as dec
-from mnerf_jax.errors import MnerfError
+from mnerf_jax import cli
+from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.reader import decoder as dec
+from mnerf_jax.reader import decoder_io, extract
 
 
 @pytest.fixture(scope="module")

@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import field, grid_volume, grids
-from mnerf_jax.config import ModelConfig
+from mnerf_jax.core.config import ModelConfig
+from mnerf_jax.tensorf import field, grid_volume, grids
 
 CFG = ModelConfig()
 SMALL = ModelConfig(density_ranks=(2, 3, 4), appearance_ranks=(3, 2, 5), app_features=6, mlp_width=16)

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import grid_volume, grids
+from mnerf_jax.tensorf import grid_volume, grids
 
 SETTINGS = settings(max_examples=10, deadline=None)
 

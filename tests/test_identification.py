@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import identification as V
-from mnerf_jax import significance
+from mnerf_jax.reader import identification as V
+from mnerf_jax.reader import significance
 
 # ------------------------------------------------------------------------------------------- statistics
 
@@ -192,9 +192,9 @@ def test_sign_flip_keeps_false_detections_below_the_threshold() -> None:
 
 
 def test_config_refuses_an_unknown_test() -> None:
-    from mnerf_jax import watermark
-    from mnerf_jax.config import WatermarkConfig
-    from mnerf_jax.errors import MnerfError
+    from mnerf_jax.core.config import WatermarkConfig
+    from mnerf_jax.core.errors import MnerfError
+    from mnerf_jax.watermark import model as watermark
 
     watermark.check_config(WatermarkConfig(id_test="sign_flip"))
     with pytest.raises(MnerfError, match="watermark.id_test must be one of binomial, sign_flip"):

@@ -13,8 +13,8 @@ from hypothesis import strategies as st
 from PIL import Image
 from skimage import data as skdata
 
-from mnerf_jax.augment import jpeg as augment_jpeg
-from mnerf_jax.jpeg import jpeg, quant_tables, round_cubic
+from mnerf_jax.imaging.augment import jpeg as augment_jpeg
+from mnerf_jax.imaging.jpeg import jpeg, quant_tables, round_cubic
 
 codec = jax.jit(jpeg)
 # Gradient of the sum of the output w.r.t. the images and the (traced) quality.

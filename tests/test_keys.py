@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import keys as K
-from mnerf_jax.errors import MnerfError
+from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.reader import keys as K
 
 
 def _brute_force_a(bits: int, distance: int) -> int:

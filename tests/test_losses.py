@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from mnerf_jax import losses
-from mnerf_jax.jpeg import DCT8
+from mnerf_jax.imaging import losses
+from mnerf_jax.imaging.jpeg import DCT8
 
 watson = jax.jit(losses.watson_dct_loss, static_argnames="chroma")
 watson_grads = jax.jit(jax.value_and_grad(losses.watson_dct_loss, argnums=(0, 1)))

@@ -9,7 +9,7 @@ import pickle
 import numpy as np
 import pytest
 
-from mnerf_jax import metrics
+from mnerf_jax.imaging import metrics
 
 
 @pytest.fixture(scope="module")

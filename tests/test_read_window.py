@@ -9,8 +9,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import read_window as rw
-from mnerf_jax.errors import MnerfError
+from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.reader import read_window as rw
 
 SIDE = 48
 
@@ -91,7 +91,7 @@ def test_gradient_reaches_exactly_the_window_pixels() -> None:
 
 
 def test_decode_with_a_window_reads_the_cropped_image(make_decoder, tmp_path) -> None:  # noqa: ANN001
-    from mnerf_jax import decoder_io, extract
+    from mnerf_jax.reader import decoder_io, extract
 
     loaded = decoder_io.load_decoder(make_decoder(tmp_path / "d.npz", 8))
     x = object_on_white(20, 4)
@@ -129,7 +129,7 @@ def test_jitter_offsets_cover_the_square_once_centre_first() -> None:
 def test_a_jittered_read_is_the_mean_over_the_moved_windows(make_decoder, tmp_path) -> None:  # noqa: ANN001
     """extract.decode with a jitter averages the decoder's logits over every moved window (checked against
     the windows cut out by hand), radius 0 is the plain read, and a whole-image read ignores the jitter."""
-    from mnerf_jax import decoder_io, extract
+    from mnerf_jax.reader import decoder_io, extract
 
     loaded = decoder_io.load_decoder(make_decoder(tmp_path / "d.npz", 8))
     x = np.concatenate([object_on_white(20, 4), object_on_white(3, 30)])
@@ -155,8 +155,8 @@ def test_extract_with_a_run_decoder_file_reads_its_recorded_window(make_decoder,
 
     import imageio.v3 as iio
 
-    from mnerf_jax import decoder_io, extract
-    from mnerf_jax.commands import extract as extract_cmd
+    from mnerf_jax.cli import extract as extract_cmd
+    from mnerf_jax.reader import decoder_io, extract
 
     plain = decoder_io.load_decoder(make_decoder(tmp_path / "plain.npz", 8))
     path = tmp_path / "run_decoder.npz"

@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import alpha_mask, budgets, chunked, field, grids, raymarch, render
-from mnerf_jax.config import ModelConfig
+from mnerf_jax.core.config import ModelConfig
+from mnerf_jax.tensorf import alpha_mask, budgets, chunked, field, grids, raymarch, render
 
 SETTINGS = settings(max_examples=10, deadline=None)
 CUBE = np.array([[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]], np.float32)

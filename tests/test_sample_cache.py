@@ -11,11 +11,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mnerf_jax import embed as E
-from mnerf_jax import field, raymarch, render, sample_cache, wm_run, xla_cpu
-from mnerf_jax import watermark as W
-from mnerf_jax.config import ModelConfig, WatermarkConfig
-from mnerf_jax.errors import MnerfError
+from mnerf_jax.core import xla_cpu
+from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.tensorf import field, raymarch, render
+from mnerf_jax.watermark import embed as E
+from mnerf_jax.watermark import model as W
+from mnerf_jax.watermark import run as wm_run
+from mnerf_jax.watermark import sample_cache
 
 if TYPE_CHECKING:
     from conftest import TinyRuns
@@ -105,15 +108,14 @@ def test_a_tiny_embed_with_a_cached_source_trains_only_the_watermark(tiny: TinyR
     out = tiny.root / "cached"
     result = E.embed(tiny.fit, out, 2, 8, overrides=overrides, decoder_path=tiny.decoder, progress=False)
     assert result.steps == 5
-    from mnerf_jax import embed_inputs
-    from mnerf_jax import run as runs
+    from mnerf_jax.watermark import inputs
 
     # The quality budget's references from the cache are the clean model's renders.
-    source = runs.load_run(tiny.fit)
+    source = wm_run.load_run(tiny.fit)
     split = source.load_scene(None, splits=("train",)).split("train")
     cache = sample_cache.build_cache(source.params, source.geometry, source.config.model, split.cameras)
     from_cache = sample_cache.clean_renders(cache, source.geometry.white_bg).reshape(split.images.shape)
-    rendered = embed_inputs.clean_references(source, split)
+    rendered = inputs.clean_references(source, split)
     np.testing.assert_allclose(from_cache.astype(np.float32), rendered.astype(np.float32), atol=2e-3)
 
     wm = wm_run.load_watermarked_run(out)

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax import significance as S
+from mnerf_jax.reader import significance as S
 
 
 def _enumerated_tail(weights: np.ndarray, observed: int) -> float:

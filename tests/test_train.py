@@ -7,10 +7,12 @@ import numpy as np
 import pytest
 from conftest import TINY_SCHEDULE as TINY
 
-from mnerf_jax import fit_step, grids, sampler, train
-from mnerf_jax.config import load_config
+from mnerf_jax.core.config import load_config
+from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.data import load_scene
-from mnerf_jax.errors import MnerfError
+from mnerf_jax.tensorf import grids, sampler
+from mnerf_jax.tensorf.fit import loop as train
+from mnerf_jax.tensorf.fit import step as fit_step
 
 
 @pytest.fixture(scope="module")
@@ -88,7 +90,7 @@ def test_budgets_grow_on_overflow_and_refit_two_steps_later():
 
 
 def test_large_budgets_are_refitted_more_often_and_by_smaller_rungs():
-    from mnerf_jax.budgets import LARGE_BUDGET, REFIT_EVERY_LARGE, ladder, refit_due
+    from mnerf_jax.tensorf.budgets import LARGE_BUDGET, REFIT_EVERY_LARGE, ladder, refit_due
 
     small = train.SampleBudgets(density=4096, colour=4096)
     large = train.SampleBudgets(density=2 * LARGE_BUDGET, colour=2 * LARGE_BUDGET)

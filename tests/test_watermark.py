@@ -9,10 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mnerf_jax import alpha_mask, field, grids, raymarch, render
-from mnerf_jax import watermark as W
-from mnerf_jax.config import ModelConfig, WatermarkConfig
-from mnerf_jax.errors import MnerfError
+from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.tensorf import alpha_mask, field, grids, raymarch, render
+from mnerf_jax.watermark import model as W
 
 MODEL = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(4, 4, 4), app_features=8, mlp_width=16)
 RES = (9, 8, 7)
@@ -170,7 +170,7 @@ def test_every_id_keeps_a_gradient_through_emb_where_relu_loses_it() -> None:
 
 
 def test_the_automatic_schedule_grows_with_the_ids() -> None:
-    from mnerf_jax import wm_step as S
+    from mnerf_jax.watermark import step as S
 
     # -1 (the default): 50 + 200 steps per ID, at least 4 IDs' worth; a value >= 0 is used as it is.
     assert W.phase_steps(WatermarkConfig(num_ids=2)) == (200, 800)
@@ -185,7 +185,7 @@ def test_the_automatic_schedule_grows_with_the_ids() -> None:
 
 
 def test_the_cpu_preset_moves_steps_from_phase_1_to_phase_2() -> None:
-    from mnerf_jax import config
+    from mnerf_jax.core import config
 
     # `mnerf embed --config embed_cpu` reads the preset's [watermark] section only: today's defaults with
     # a 100 + 2,600 step schedule ended by a 60-minute budget, the field's loss weighted towards the IDs
@@ -200,9 +200,9 @@ def test_the_cpu_preset_moves_steps_from_phase_1_to_phase_2() -> None:
 
 def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no_attacks_and_a_phase_3(
 ) -> None:
-    from mnerf_jax import config
-    from mnerf_jax.deferred import patch_layout
-    from mnerf_jax.wm_step import fidelity_budget_db
+    from mnerf_jax.core import config
+    from mnerf_jax.watermark.deferred import patch_layout
+    from mnerf_jax.watermark.step import fidelity_budget_db
 
     cfg = config.load_preset("embed_cpu_quality").watermark
     base = config.load_preset("embed_cpu").watermark

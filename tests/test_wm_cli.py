@@ -15,7 +15,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from mnerf_jax.errors import MnerfError
+from mnerf_jax.core.errors import MnerfError
 
 if TYPE_CHECKING:
     from conftest import TinyRuns
@@ -44,32 +44,33 @@ def id_renders(tiny: TinyRuns, tmp_path_factory: pytest.TempPathFactory) -> dict
     return {k: root / f"id{k}" for k in (0, 1)}
 
 
-def test_load_run_loads_a_watermarked_run_from_a_fresh_process(tiny: TinyRuns) -> None:
-    # Only mnerf_jax.run is imported: the loader of the "multinerf" kind must register itself on demand.
+def test_load_run_loads_either_kind_from_a_fresh_process(tiny: TinyRuns) -> None:
+    # watermark.run.load_run dispatches on run.json's kind: a fitted TensoRF and a watermarked run.
     script = (
         "import sys\n"
-        "from mnerf_jax import run\n"
-        "assert 'mnerf_jax.wm_run' not in sys.modules\n"
-        "loaded = run.load_run(sys.argv[1])\n"
-        "print(loaded.kind, loaded.step, loaded.extras['num_ids'], loaded.extras['id'])\n"
+        "from mnerf_jax.watermark import run\n"
+        "for path in sys.argv[1:]:\n"
+        "    loaded = run.load_run(path)\n"
+        "    print(loaded.kind, loaded.step, loaded.extras.get('num_ids'), loaded.extras.get('id'))\n"
     )
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    done = subprocess.run([sys.executable, "-c", script, str(tiny.wm)], capture_output=True, text=True,
-                          env=env, timeout=300)  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", script, str(tiny.wm), str(tiny.fit)], capture_output=True,
+                          text=True, env=env, timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stderr
-    assert done.stdout.split() == ["multinerf", "80", "2", "0"]
+    lines = done.stdout.splitlines()
+    assert lines[0].split() == ["multinerf", "80", "2", "0"]
+    assert lines[1].split()[0] == "tensorf" and lines[1].split()[2:] == ["None", "None"]
 
 
 def test_render_with_id(tiny: TinyRuns, id_renders: dict[int, Path], tmp_path: Path, mnerf) -> None:
-    from mnerf_jax import run as runs
-    from mnerf_jax import wm_run
+    from mnerf_jax.watermark import run as wm_run
 
     names = sorted(p.name for p in id_renders[1].iterdir())
     assert names == ["r_0.png", "r_5.png"]
     a, b = (iio.imread(id_renders[k] / "r_0.png").astype(int) for k in (0, 1))
     assert np.abs(a - b).max() > 2  # the IDs render differently
     # The PNG is the library's render of that ID, rounded to 8 bits.
-    loaded = runs.load_run(tiny.wm)
+    loaded = wm_run.load_run(tiny.wm)
     cameras = loaded.load_scene(splits=("test",)).split("test").cameras
     expected = wm_run.render_with_id(loaded, 1, cameras, [0])[0]
     assert np.abs(b - np.round(np.clip(expected, 0, 1) * 255)).max() <= 1
@@ -114,8 +115,8 @@ def test_evaluate_watermarked_run(tiny: TinyRuns, tmp_path: Path, mnerf) -> None
 
 def test_extract_identifies_the_id_of_rendered_images(tiny: TinyRuns, id_renders: dict[int, Path],
                                                       mnerf) -> None:  # fmt: skip
-    from mnerf_jax import wm_eval
-    from mnerf_jax.commands.extract import identification_line
+    from mnerf_jax.cli.extract import identification_line
+    from mnerf_jax.evaluation import watermarked as wm_eval
 
     paths = sorted(id_renders[1].glob("*.png")) + sorted(id_renders[0].glob("*.png"))
     code, out, _ = mnerf("extract", "--run", tiny.wm, *paths, "--json")
@@ -178,8 +179,8 @@ def test_extract_errors_and_the_decoder_mode(tiny: TinyRuns, id_renders: dict[in
 
 
 def test_demo_finds_its_decoder(tiny: TinyRuns, tmp_path: Path, monkeypatch) -> None:
-    from mnerf_jax import decoder_io
-    from mnerf_jax.commands import demo
+    from mnerf_jax.cli import demo
+    from mnerf_jax.reader import decoder_io
 
     monkeypatch.setattr(decoder_io, "shipped_decoder_path", lambda bits: tmp_path / f"absent_l{bits}.npz")
     path, note = demo.find_decoder(None)
@@ -201,7 +202,7 @@ def test_demo_resumes_its_fitted_run_and_writes_the_report(
     a fresh decoder (none shipped, no --decoder: a note says so), the watermark evaluation and the report."""
     from conftest import TINY_FIT
 
-    from mnerf_jax import decoder_io
+    from mnerf_jax.reader import decoder_io
 
     monkeypatch.setattr(decoder_io, "shipped_decoder_path", lambda bits: tmp_path / f"absent_l{bits}.npz")
     out = tmp_path / "demo"

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from mnerf_jax import report
-from mnerf_jax import wm_eval as V
+from mnerf_jax.evaluation import report
+from mnerf_jax.evaluation import watermarked as V
 
 # ---------------------------------------------------------------------------------------------- report
 
@@ -148,7 +148,7 @@ def test_identify_images_reads_saved_renders(tiny_eval) -> None:
 def test_identify_images_refuses_non_rgb_files(tiny_eval, tmp_path) -> None:
     import imageio.v3 as iio
 
-    from mnerf_jax.errors import MnerfError
+    from mnerf_jax.core.errors import MnerfError
 
     runs, _ = tiny_eval
     gray = tmp_path / "gray.png"
@@ -170,7 +170,7 @@ def test_report_from_a_real_evaluation(tiny_eval, tmp_path) -> None:
 
 
 def test_attack_scores_count_bits_and_names() -> None:
-    from mnerf_jax import wm_attacks
+    from mnerf_jax.evaluation import attacks as wm_attacks
 
     messages = np.array([[1, 0, 1, 1, 0, 0, 1, 0], [0, 1, 1, 0, 1, 0, 0, 1]], np.float32)
     logits = np.where(messages[:, None] > 0.5, 3.0, -3.0).repeat(4, axis=1)  # [2 IDs, 4 views, 8 bits]
@@ -182,7 +182,7 @@ def test_attack_scores_count_bits_and_names() -> None:
 
 
 def test_attacks_on_the_saved_renders(tiny_eval, mnerf) -> None:
-    from mnerf_jax import wm_attacks
+    from mnerf_jax.evaluation import attacks as wm_attacks
 
     runs, _ = tiny_eval
     saved = json.loads((runs.wm / "eval-test.json").read_text())

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mnerf_jax.config import DataConfig, RenderConfig
+from mnerf_jax.core.config import DataConfig, RenderConfig
 from mnerf_jax.data.blender import load_blender
 from mnerf_jax.data.llff import NDC_AABB, NDC_NEAR_FAR, load_llff
 from mnerf_jax.data.nerfstudio import load_nerfstudio

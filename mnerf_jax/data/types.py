@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mnerf_jax.errors import MnerfError
+from mnerf_jax.core.errors import MnerfError
 
 
 class DataError(MnerfError):

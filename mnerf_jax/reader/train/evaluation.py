@@ -1,0 +1,160 @@
+"""Held-out evaluation of a decoder training run: the encoder's images and informed embeddings, with no attack
+and under the run's augmentation policy, and their PSNR."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mnerf_jax.imaging import augment
+from mnerf_jax.reader import decoder as dec
+from mnerf_jax.reader import dwt
+from mnerf_jax.reader.train import informed
+from mnerf_jax.reader.train.cover_images import EVAL_SEED, heldout_images, heldout_messages
+from mnerf_jax.reader.train.hidden_encoder import encode, encode_batch
+from mnerf_jax.reader.train.recipe import DecoderTrainConfig
+
+
+def policy(cfg: DecoderTrainConfig) -> Callable[[jax.Array, jax.Array], jax.Array]:
+    """The run's augmentation layer: ``augment.random_policy`` at its strength, count and probability."""
+
+    def apply(key: jax.Array, images: jax.Array) -> jax.Array:
+        return augment.random_policy(
+            key, images, strength=cfg.augment_strength, k=cfg.augment_k, p=cfg.augment_p
+        )
+
+    return apply
+
+
+def evaluate(
+    cfg: DecoderTrainConfig,
+    enc_vars: dict[str, Any],
+    dec_vars: dict[str, Any],
+    images: np.ndarray,
+    bits: np.ndarray,
+    batch: int = 32,
+) -> dict[str, float]:
+    """Bit accuracy with no attack and under the augmentation policy (several draws), and PSNR, on a set."""
+    draws = cfg.eval_augment_draws
+    augment_fn = policy(cfg) if draws > 0 else None
+
+    # The variables are arguments, not closed-over constants (XLA would fold them at length).
+    @jax.jit
+    def run(enc_vars, dec_vars, x, m, key):
+        encoded, _ = encode(enc_vars, x, m, cfg, train=False)
+        clean = dec.apply_ll2(dec_vars, dwt.ll2(encoded, cfg.wavelet))
+        acc_clean = jnp.mean((clean > 0) == (m > 0.5), axis=-1)
+        if augment_fn is None:
+            acc_low = jnp.full_like(acc_clean, jnp.nan)
+        else:
+            # lax.map, not vmap: a batched policy index would run every augmentation branch.
+            attacked = jax.lax.map(
+                lambda k: dec.apply_ll2(dec_vars, dwt.ll2(augment_fn(k, encoded), cfg.wavelet)),
+                jax.random.split(key, draws),
+            )
+            acc_low = jnp.mean((attacked > 0) == (m > 0.5)[None], axis=(0, -1))
+        mse = jnp.mean((encoded - x) ** 2, axis=(-3, -2, -1))
+        return acc_clean, acc_low, -10.0 * jnp.log10(jnp.maximum(mse, 1e-12))
+
+    acc_clean, acc_low, psnr = [], [], []
+    for i in range(0, len(images), batch):
+        a, b, p = run(
+            enc_vars,
+            dec_vars,
+            jnp.asarray(images[i : i + batch]),
+            jnp.asarray(bits[i : i + batch]),
+            jax.random.fold_in(jax.random.PRNGKey(EVAL_SEED), i),
+        )
+        acc_clean.append(np.asarray(a))
+        acc_low.append(np.asarray(b))
+        psnr.append(np.asarray(p))
+    acc_clean, acc_low, psnr = map(np.concatenate, (acc_clean, acc_low, psnr))
+    low = float(acc_low.mean())
+    return {
+        "bit_acc_none": float(acc_clean.mean()),
+        "bit_acc_low": None if math.isnan(low) else low,
+        "psnr_mean": float(psnr.mean()),
+        "psnr_min": float(psnr.min()),
+        "images": int(len(images)),
+        "informed": {
+            f"{n}_iterations": evaluate_informed(cfg, dec_vars, images, bits, n, batch)
+            for n in cfg.eval_informed_iterations
+        },
+    }
+
+
+def evaluate_informed(
+    cfg: DecoderTrainConfig,
+    dec_vars: dict[str, Any],
+    images: np.ndarray,
+    bits: np.ndarray,
+    iterations: int,
+    batch: int = 32,
+) -> dict[str, float | None]:
+    """Bit accuracy (no attack, Low) and PSNR of informed embeddings (``informed.informed_embed``) of a set.
+
+    This is how a radiance field carries the watermark (it follows the decoder's gradient), so these figures
+    predict MultiNeRF's; the encoder's figures (``evaluate``) are the HiDDeN protocol.
+    """
+    draws = cfg.eval_augment_draws
+    augment_fn = policy(cfg) if draws > 0 else None
+
+    @jax.jit
+    def run(dec_vars, x, m, key):
+        read = lambda y: dec.apply_ll2(dec_vars, dwt.ll2(y, cfg.wavelet))
+        encoded = informed.informed_embed(read, x, m, cfg.target_psnr, iterations)
+        acc_clean = jnp.mean((read(encoded) > 0) == (m > 0.5), axis=-1)
+        if draws > 0:
+            attacked = jax.lax.map(lambda k: read(augment_fn(k, encoded)), jax.random.split(key, draws))
+            acc_low = jnp.mean((attacked > 0) == (m > 0.5)[None], axis=(0, -1))
+        else:  # no attacked read: the policy over all 14 augmentations is not compiled for nothing
+            acc_low = jnp.full_like(acc_clean, jnp.nan)
+        mse = jnp.mean((encoded - x) ** 2, axis=(-3, -2, -1))
+        return acc_clean, acc_low, -10.0 * jnp.log10(jnp.maximum(mse, 1e-12))
+
+    parts = [
+        run(
+            dec_vars,
+            jnp.asarray(images[i : i + batch]),
+            jnp.asarray(bits[i : i + batch]),
+            jax.random.fold_in(jax.random.PRNGKey(EVAL_SEED), i),
+        )
+        for i in range(0, len(images), batch)
+    ]
+    acc_clean, acc_low, psnr = (np.concatenate([np.asarray(p[j]) for p in parts]) for j in range(3))
+    return {
+        "bit_acc_none": float(acc_clean.mean()),
+        "bit_acc_low": float(acc_low.mean()) if draws > 0 else None,
+        "psnr_mean": float(psnr.mean()),
+        "psnr_min": float(psnr.min()),
+    }
+
+
+def evaluate_sizes(
+    cfg: DecoderTrainConfig, enc_vars: dict[str, Any], dec_vars: dict[str, Any]
+) -> dict[str, Any]:
+    """Held-out figures at every side in ``cfg.eval_sizes``: ``{"64px": {...}, "256px": {...}}``."""
+    out = {}
+    for size in cfg.eval_sizes:
+        images = heldout_images(cfg.eval_images, size)
+        out[f"{size}px"] = evaluate(
+            cfg, enc_vars, dec_vars, images, heldout_messages(cfg.eval_images, cfg.bits)
+        )
+    return out
+
+
+def clean_accuracy(
+    cfg: DecoderTrainConfig,
+    enc_vars: dict[str, Any],
+    dec_vars: dict[str, Any],
+    images: np.ndarray,
+    bits: np.ndarray,
+) -> float:
+    encoded = encode_batch(cfg, enc_vars, images, bits)
+    logits = dec.decode_logits(dec_vars, jnp.asarray(encoded), cfg.wavelet)
+    return float(jnp.mean((logits > 0) == (jnp.asarray(bits) > 0.5)))

@@ -1,0 +1,282 @@
+"""The host side of ``mnerf embed``: the loop that chooses IDs and views, dispatches the jitted step
+(``wm_step.embed_step``), grows the sample buffers, checkpoints, reports, and ends the run early when a
+time budget (``embed_budget``) has no room for another step. ``embed.embed`` sets it up.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from mnerf_jax.core import rundir
+from mnerf_jax.core.checkpoint import CheckpointStore, config_fingerprint
+from mnerf_jax.core.config import Config
+from mnerf_jax.core.scalar_log import ScalarLog
+from mnerf_jax.imaging import metrics as metrics_lib
+from mnerf_jax.reader import decoder_io
+from mnerf_jax.reader import keys as keys_lib
+from mnerf_jax.tensorf import budgets, grids, raymarch
+from mnerf_jax.watermark import model as watermark
+from mnerf_jax.watermark import run as wm_run
+from mnerf_jax.watermark import sample_cache
+from mnerf_jax.watermark import time_budget as embed_budget
+from mnerf_jax.watermark.deferred import PatchLayout
+from mnerf_jax.watermark.inputs import step_batch, step_choice
+from mnerf_jax.watermark.run import DECODER_FILE, META_FILE, STATE_VERSION, WM_KIND, EmbedError
+from mnerf_jax.watermark.step import (
+    EmbedState,
+    StepSpec,
+    embed_step,
+    fidelity_budget_db,
+    phase_of,
+    step_config,
+    total_steps,
+    uses_fidelity,
+)
+
+# The sample-buffer site of the embedding's patch renders (budgets.BudgetPolicy).
+BUDGET_SITE = "embed_patch"
+
+
+# ------------------------------------------------------------------------------------- checkpoints
+
+
+def checkpoint_tree(state: EmbedState, geometry: raymarch.Geometry) -> dict[str, Any]:
+    return {
+        "params": state.params,
+        "decoder": state.decoder,
+        "opt_state": state.opt_state,
+        "step": state.step,
+        "key": jax.random.key_data(state.key),
+        "geometry": raymarch.geometry_arrays(geometry),
+    }
+
+
+def checkpoint_meta(config: Config, state: EmbedState, geometry: raymarch.Geometry, keys: keys_lib.KeySet,
+                     budgets: tuple[int, int]) -> dict[str, Any]:  # fmt: skip
+    step = int(state.step)
+    return {
+        "kind": WM_KIND,
+        "version": STATE_VERSION,
+        "step": step,
+        "phase": phase_of(max(step - 1, 0), config.watermark),
+        "fingerprint": config_fingerprint(wm_run.fingerprint_config(config), wm_run.SECTIONS),
+        "config": config.to_dict(),
+        "resolution": list(grids.vm_resolution(state.params["density"])),
+        "geometry": raymarch.geometry_meta(geometry),
+        "num_ids": keys.num_ids,
+        "bits": keys.bits,
+        "budgets": [int(b) for b in budgets],
+    }
+
+
+@dataclasses.dataclass
+class EmbedResult:
+    """What :func:`embed` returns."""
+
+    run_dir: Path
+    keys: keys_lib.KeySet
+    steps: int
+    seconds: float
+    last_metrics: dict[str, float]
+    redone_steps: int
+    stopped_by_budget: bool = False  # watermark.time_budget_min ended it before its schedule did
+    state: EmbedState | None = None  # the state it ended with
+
+
+def seed_budgets(policy: budgets.BudgetPolicy, n_rays: int, n_samples: int, budgets: Sequence[int]) -> None:
+    """Start ``policy`` at the budgets a checkpoint recorded (no overflow-and-redo after a resume)."""
+    policy.budgets(BUDGET_SITE, n_rays, n_samples)
+    site = policy._sites[(BUDGET_SITE, n_rays * n_samples)]  # noqa: SLF001
+    site.density, site.colour = int(budgets[0]), int(budgets[1])
+
+
+# A step's new state and its metrics on the host.
+StepOutcome = tuple[EmbedState, dict[str, float]]
+
+
+@dataclasses.dataclass
+class EmbedLoop:
+    """Host side of the embedding: choose ID and view, dispatch steps, grow budgets, checkpoint, report."""
+
+    config: Config
+    split: Any
+    keys: keys_lib.KeySet
+    layout: PatchLayout
+    geometry: raymarch.Geometry
+    policy: budgets.BudgetPolicy
+    store: CheckpointStore
+    out: Path
+    progress: bool
+    on_step: Callable[[int, dict[str, float]], None] | None
+    vgg: Any
+    references: np.ndarray | None = None  # clean renders of the training views (wm_step.uses_clean_renders)
+    clock: embed_budget.BudgetClock | None = None  # watermark.time_budget_min, when set
+    cache: sample_cache.SampleCache | None = None  # watermark.cache_source: the fitted field's samples
+
+    def __post_init__(self) -> None:
+        # What every step passes unchanged, made once rather than per step.
+        cfg = self.config.watermark
+        self._messages = self.keys.messages.astype(np.float32)
+        self._index, self._owner = jnp.asarray(self.layout.index), jnp.asarray(self.layout.owner)
+        self._step_cfg = step_config(cfg)
+        self._total_steps = total_steps(cfg)
+        self._total = jnp.asarray(self._total_steps, jnp.int32)
+        self._ids_per_step = watermark.ids_per_step_of(cfg, self.keys.num_ids)
+
+    def budgets(self) -> tuple[int, int]:
+        return self.policy.budgets(BUDGET_SITE, self.layout.size**2, self.geometry.n_samples)
+
+    def save(self, state: EmbedState) -> None:
+        """Checkpoint, then the decoder as it is now, then keys.json tied to that decoder, then progress."""
+        step = int(state.step)
+        tick = time.perf_counter()
+        meta = checkpoint_meta(self.config, state, self.geometry, self.keys, self.budgets())
+        self.store.save(step, checkpoint_tree(state, self.geometry), meta)
+        self.store.wait()
+        wm = self.config.watermark
+        dec_meta = decoder_io.save_decoder(
+            self.out / DECODER_FILE,
+            state.decoder,
+            {
+                "embed_step": step,
+                "read_window": wm.read_window,
+                "read_background": wm.read_background,
+                "read_jitter": wm.read_jitter,
+            },
+            wavelet=wm.wavelet,
+        )
+        self.keys = keys_lib.with_fingerprint(self.keys, dec_meta["fingerprint"])
+        keys_lib.save_keys(self.out, self.keys)
+        rundir.write_json_atomic(
+            self.out / META_FILE,
+            {"steps_done": step, "phase": meta["phase"], "decoder_fingerprint": dec_meta["fingerprint"]},
+        )
+        if self.clock is not None:
+            self.clock.checkpoint_s = time.perf_counter() - tick
+
+    def size_schedule(self, step: int, now: float) -> bool:
+        """Shorten phase 2 to the steps that end inside the time budget (``watermark.budget_sizes_field``,
+        ``embed_budget.sized_field_steps``); the run's config.json and later checkpoints record it. True
+        when the schedule changed."""
+        wm = self.config.watermark
+        total = embed_budget.sized_field_steps(self.clock, now, step, self._total_steps, wm.checkpoint_every)
+        if total >= self._total_steps:
+            return False
+        phase2 = max(total - wm.phase1_steps, 1)
+        wm = dataclasses.replace(wm, phase1_steps=total - phase2, phase2_steps=phase2)
+        self.config = dataclasses.replace(self.config, watermark=wm)
+        self._total_steps, self._total = total, jnp.asarray(total, jnp.int32)
+        rundir.write_json_atomic(self.out / rundir.CONFIG_FILE, self.config.to_dict())
+        if self.progress:
+            step_s = self.clock.expected_step_s()
+            tqdm.write(f"embed: the time budget ({wm.time_budget_min:g} min) holds {total} of the field's "
+                       f"steps at {step_s:.2f} s a step; its schedule now ends there")  # fmt: skip
+        return True
+
+    def dispatch(self, state: EmbedState, step: int, phase: int) -> StepOutcome | None:
+        """Step ``step`` (its IDs and view from the seed) in ``phase``: the new state and host metrics, or
+        None when samples overflowed the buffers (grown now: redo it)."""
+        cfg = self.config.watermark
+        ids, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images), self._ids_per_step)
+        batch = step_batch(self.split, view, self._messages, ids, self.references)
+        if self.cache is not None:
+            batch.update({k: jnp.asarray(v) for k, v in self.cache.view(view).items()})
+        if uses_fidelity(cfg):  # the budget as data: its ramp (fidelity_budget_db) compiles once
+            budget = metrics_lib.psnr_to_mse(fidelity_budget_db(cfg, step, self._total_steps))
+            batch["fidelity_mse"] = np.float32(budget)
+        db, cb = self.budgets() if self.cache is None else (0, 0)  # a cached render marches no ray
+        spec = StepSpec(model=self.config.model, wm=self._step_cfg, adam_b1=self.config.train.adam_b1,
+                        adam_b2=self.config.train.adam_b2, phase=phase, height=self.layout.height,
+                        width=self.layout.width, density_budget=db, colour_budget=cb)  # fmt: skip
+        new_state, metrics = embed_step(state, self.geometry, batch, self._index, self._owner, self.vgg,
+                                        self._total, spec=spec)  # fmt: skip
+        host = {k: float(v) for k, v in jax.device_get(metrics).items()}
+        counts = {k: int(host[k]) for k in ("density_count", "colour_count")}
+        if self.cache is None and self.policy.update(BUDGET_SITE, counts, self.layout.size**2,
+                                                     self.geometry.n_samples):  # fmt: skip
+            return None
+        host.update(phase=float(phase), id=float(ids[0]), view=float(view))
+        return new_state, host
+
+    def run(self, state: EmbedState, stop_at: int | None, started: float) -> EmbedResult:
+        """Steps from ``state.step`` to the schedule's end (or ``stop_at``), or until the time budget (its
+        clock started at ``started``) has no room for another step."""
+        cfg = self.config.watermark
+        t0 = time.perf_counter()
+        if cfg.time_budget_min > 0:
+            kept = cfg.phase3_reserve_min * 60.0 if cfg.phase3_steps else 0.0
+            self.clock = embed_budget.BudgetClock(cfg.time_budget_min * 60.0, started, kept_s=kept)
+        total = total_steps(cfg)
+        stop = total if stop_at is None else min(int(stop_at), total)
+        start = step = int(state.step)
+        every = max(int(cfg.checkpoint_every), 1)
+        sizing = self.clock is not None and cfg.budget_sizes_field and step < total
+        size_at = start + embed_budget.FIELD_SIZING_STEPS if sizing else -1
+        bar = tqdm(total=stop, initial=start, disable=not self.progress, desc="embed", unit="step",
+                   dynamic_ncols=True)  # fmt: skip
+        recent: list[tuple[float, float, float]] = []
+        last: dict[str, float] = {}
+        redone = 0
+        stopped_by_budget = False
+        log = ScalarLog(self.out)
+        try:
+            while step < stop:
+                tick = time.perf_counter()
+                if step == size_at and self.size_schedule(step, tick):
+                    cfg, total = self.config.watermark, self._total_steps
+                    stop = min(stop, total)
+                    bar.total = stop
+                    bar.refresh()
+                    if step >= stop:
+                        break
+                if self.clock is not None and not self.clock.room_for_a_step(tick):
+                    stopped_by_budget = True
+                    break
+                out = self.dispatch(state, step, phase_of(step, cfg))
+                if out is None:
+                    redone += 1  # samples were dropped: redo the step with the grown budgets
+                    continue
+                if self.clock is not None:
+                    self.clock.record_step(time.perf_counter() - tick)
+                new_state, host = out
+                if not all(np.isfinite(v) for v in host.values()):
+                    raise EmbedError(f"step {step}: the loss is not finite ({host['loss']}); lower the "
+                                     "learning rates (watermark.lr_*)")  # fmt: skip
+                state, step = new_state, step + 1
+                last = host
+                recent = [*recent, (host["bit_acc"], host["psnr"], host.get("psnr_clean", np.nan))][-20:]
+                bar.update(1)
+                shown = {"phase": int(host["phase"]), "bit_acc": f"{np.mean([r[0] for r in recent]):.3f}",
+                         "psnr": f"{np.mean([r[1] for r in recent]):.2f}"}  # fmt: skip
+                if "psnr_clean" in host:  # against the clean model's render (the quality budget)
+                    shown["psnr_clean"] = f"{np.mean([r[2] for r in recent]):.2f}"
+                    shown["budget"] = f"{host['psnr_budget']:.1f}"
+                bar.set_postfix(shown)
+                log.add(step - 1, host, last=step == stop)
+                if self.on_step is not None:
+                    self.on_step(step - 1, host)
+                if step % every == 0 or step == stop or step == cfg.phase1_steps:
+                    self.save(state)
+        finally:
+            bar.close()
+            log.close()
+        if stopped_by_budget and self.progress:
+            after = ("phase 3 follows in the minutes kept for it" if self.clock and self.clock.kept_s
+                     else "--resume continues it")  # fmt: skip
+            tqdm.write(f"embed: the time budget ({cfg.time_budget_min:g} min) ends the field at step {step} "
+                      f"of {total}; {after}")  # fmt: skip
+        saved_there = step % every == 0 or step == cfg.phase1_steps
+        if (stopped_by_budget and not saved_there) or not (self.out / DECODER_FILE).is_file():
+            self.save(state)
+        return EmbedResult(run_dir=self.out, keys=self.keys, steps=int(state.step),
+                           seconds=time.perf_counter() - t0, last_metrics=last, redone_steps=redone,
+                           stopped_by_budget=stopped_by_budget, state=state)  # fmt: skip

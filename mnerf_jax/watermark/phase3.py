@@ -1,0 +1,317 @@
+"""Phase 3 of ``mnerf embed`` (not in the paper): the decoder alone, refitted on the finished field's renders.
+
+In phase 2 the decoder learns one view per step, from renders that keep changing under it. Once the field is
+fixed, every training view rendered with every ID is a labelled set of exactly the images the decoder will be
+given, and a decoder step on it costs a fraction of a field step (no render, no back-propagation into the
+field). Phase 3 renders that set once (``watermark.phase3_views`` more views around the training cameras on
+object-centred scenes), then trains the decoder's weights alone on it: the message BCE and the key term of
+phase 2 on every render, and ``phase3_lambda_clean`` · BCE against ½ on unwatermarked images (the training
+views' photographs, and the clean model's renders of every view used); half of each batch is rounded to 8
+bits as a saved PNG is, and the run's phase-2 augmentations apply when it has them. The field, and so the
+PSNR, does not change. Measured on lego: docs/findings.md, "The decoder refitted on the finished field".
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from tqdm.auto import tqdm
+
+from mnerf_jax.core import xla_cpu
+from mnerf_jax.core.config import WatermarkConfig
+from mnerf_jax.data import trajectory
+from mnerf_jax.data.types import Cameras
+from mnerf_jax.imaging import augment, losses
+from mnerf_jax.reader import decoder as decoder_lib
+from mnerf_jax.reader import dwt, read_window
+from mnerf_jax.tensorf import run as runs
+from mnerf_jax.watermark import run as wm_run
+
+PyTree = Any
+# A batch holds phase3_batch renders and a quarter as many unwatermarked images (8 per 32, as in the sweep of
+# docs/findings.md, "The decoder refitted on the finished field").
+NEGATIVES_PER_BATCH_DIVISOR = 4
+VIEW_DENSITIES = ("angles", "sphere")  # novel_cameras' spreads of the elevation
+
+
+def settings_problem(cfg: WatermarkConfig) -> str | None:
+    """What is wrong with ``cfg``'s phase-3 settings, in one line, or None (``watermark.check_config``
+    raises it)."""
+    if (
+        min(cfg.phase3_steps, cfg.phase3_views) < 0
+        or cfg.phase3_batch < 1
+        or not cfg.phase3_lr > 0
+        or not cfg.phase3_reserve_min >= 0
+        or not cfg.phase3_lambda_clean >= 0
+    ):
+        return ("watermark.phase3_steps and phase3_views must be ≥ 0 (0 steps: no phase 3), "
+                "phase3_batch ≥ 1, phase3_lr > 0, phase3_reserve_min ≥ 0 and phase3_lambda_clean ≥ 0; got "
+                f"{cfg.phase3_steps}, {cfg.phase3_views}, {cfg.phase3_batch}, {cfg.phase3_lr}, "
+                f"{cfg.phase3_reserve_min}, {cfg.phase3_lambda_clean}")  # fmt: skip
+    if cfg.phase3_view_density not in VIEW_DENSITIES or not 0 <= cfg.phase3_elevation_margin <= 90:
+        return (
+            f"watermark.phase3_view_density must be one of {VIEW_DENSITIES} and phase3_elevation_margin "
+            f"within [0, 90] degrees; got {cfg.phase3_view_density!r}, {cfg.phase3_elevation_margin}"
+        )
+    return None
+
+
+@flax.struct.dataclass
+class RefitSet:
+    """What phase 3 trains on.
+
+    Attributes:
+      renders: ``[N, V, H, W, 3]`` float32 in [0, 1], view ``v`` rendered with ID ``n``.
+      messages: ``[N, L]`` 0/1, each ID's key.
+      negatives: ``[G, H, W, 3]`` unwatermarked images (decoded against ½).
+    """
+
+    renders: Any
+    messages: Any
+    negatives: Any
+
+
+def novel_cameras(cameras: Cameras, count: int, seed: int, density: str = "angles",
+                  margin_deg: float = 0.0) -> Cameras:  # fmt: skip
+    """``count`` cameras around object-centred ``cameras``, looking at their focus point
+    (``trajectory.focus_point``), with the first camera's intrinsics: azimuth uniform, distance uniform within
+    the given cameras' range, elevation within theirs widened by ``margin_deg`` degrees on either side
+    (clipped to ±90°). ``density`` "angles": elevation uniform; "sphere": uniform over the sphere's area,
+    i.e. sin(elevation) uniform (how NeRF-Synthetic's cameras are drawn, more views near the horizon).
+    Raises ValueError for forward-facing (NDC) cameras, where such poses leave the scene.
+    """
+    if cameras.ndc is not None:
+        raise ValueError(
+            "novel views around the cameras need an object-centred scene, not a forward-facing one"
+        )
+    c2w = cameras.c2w.astype(np.float64)
+    centre, axis = trajectory.focus_point(c2w), trajectory.up_axis(c2w)
+    offsets = c2w[:, :, 3] - centre
+    radius = np.linalg.norm(offsets, axis=-1)
+    elevation = np.arcsin(np.clip(offsets @ axis / radius, -1.0, 1.0))
+    e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x3F]))
+    theta = rng.uniform(0.0, 2.0 * math.pi, count)
+    margin = math.radians(margin_deg)
+    low, high = max(elevation.min() - margin, -math.pi / 2), min(elevation.max() + margin, math.pi / 2)
+    if density == "sphere":
+        elev = np.arcsin(rng.uniform(math.sin(low), math.sin(high), count))
+    elif density == "angles":
+        elev = rng.uniform(low, high, count)
+    else:
+        raise ValueError(f"unknown view density {density!r} (known: {VIEW_DENSITIES})")
+    dist = rng.uniform(radius.min(), radius.max(), count)
+    ring = np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2
+    pos = centre + dist[:, None] * (np.cos(elev)[:, None] * ring + np.sin(elev)[:, None] * axis)
+    first = np.zeros(count, np.int64)
+    return Cameras(
+        c2w=np.stack([trajectory.look_at(p, centre, axis) for p in pos]) if count else np.zeros((0, 3, 4)),
+        fx=cameras.fx[first], fy=cameras.fy[first], cx=cameras.cx[first], cy=cameras.cy[first],
+        distortion=cameras.distortion[first], width=cameras.width, height=cameras.height,
+    )  # fmt: skip
+
+
+def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_truth: np.ndarray,
+                     clean_model: Any = None, progress: bool = False,
+                     clean_renders: np.ndarray | None = None,
+                     training_renders: dict[int, np.ndarray] | None = None) -> RefitSet:  # fmt: skip
+    """Phase 3's training set from a loaded watermarked run (``wm_run.load_watermarked_run``): every ID's
+    renders of ``cameras`` (the training views) and of ``watermark.phase3_views`` novel views
+    (:func:`novel_cameras`, seeded by ``watermark.seed``), rendered as evaluation renders them (no jitter).
+    The negatives: ``ground_truth [V, H, W, 3]`` (the training images) and, given the run it was embedded
+    into (``clean_model``, a loaded TensoRF run), its renders of the same views: an unwatermarked render is
+    what a verifier must answer "no watermark" for, and it lies far nearer the watermarked renders (43 dB on
+    lego) than the photographs do (33 dB). With the photographs alone the refitted decoder claimed 3.5 % of
+    the clean renders on lego (one H200 run, seed 1). ``clean_renders [V, H, W, 3]``: the clean model's
+    renders of ``cameras`` when the caller has them already (the quality budget's references), so that only
+    the novel views are rendered again (a clean render costs about as much as all 16 IDs' renders of a view:
+    the geometry pass dominates). ``training_renders``: every ID's renders of ``cameras``, ``{ID: [V, H, W,
+    3]}``, when the caller has them (``sample_cache.every_id_renders``), so that only the novel views are
+    rendered."""
+
+    if clean_renders is not None and len(clean_renders) != len(cameras):
+        raise ValueError(f"{len(clean_renders)} clean renders for {len(cameras)} training views")
+    keys = run.extras["keys"]
+    sets = [cameras]
+    if cfg.phase3_views:
+        sets.append(novel_cameras(cameras, int(cfg.phase3_views), int(cfg.seed), cfg.phase3_view_density,
+                                  cfg.phase3_elevation_margin))  # fmt: skip
+    to_draw = sets if training_renders is None else sets[1:]
+    views = sum(len(c) for c in to_draw)
+    bar = tqdm(total=views * keys.num_ids, disable=not progress, desc="embed phase 3 (renders)",
+               unit="render", dynamic_ncols=True)  # fmt: skip
+    tick = lambda _, rgb: bar.update(rgb.shape[-1] // 3)  # noqa: E731  (a view's renders: one per ID)
+    try:
+        parts = [] if training_renders is None else [training_renders]
+        parts += [wm_run.render_every_id(run, cams, on_view=tick) for cams in to_draw]
+    finally:
+        bar.close()
+    renders = np.stack([np.concatenate([part[n] for part in parts]) for n in range(keys.num_ids)])
+    negatives = [np.asarray(ground_truth, np.float32)]
+    if clean_model is not None and clean_renders is not None:
+        negatives.append(np.asarray(clean_renders, np.float32))  # the training views' (sets[0]), given
+    if clean_model is not None:
+        to_render = sets if clean_renders is None else sets[1:]
+        negatives += [np.stack(runs.render_views(clean_model, cams)).astype(np.float32) for cams in to_render]
+    messages = np.asarray(keys.messages, np.uint8)
+    return RefitSet(renders.astype(np.float32), messages, np.concatenate(negatives))
+
+
+def refit_rate(cfg: WatermarkConfig, step: Any, total: Any) -> jax.Array:
+    """Phase 3's learning rate at ``step`` (0-based) of a ``total``-step schedule (ints or traced scalars):
+    a linear warm-up over the first 10 % (at least one step), then cosine decay to 0 at ``total`` (optax's
+    ``warmup_cosine_decay_schedule``, with the length as data so that :func:`refit_decoder` can size it to
+    the minutes left). The decoder's Adam state starts empty, and a full-rate start on a fitted decoder first
+    unlearned it (lego: 90.7 → 89.4 % bits after 500 steps at 1e-3 without warm-up)."""
+    s = jnp.asarray(step, jnp.float32)
+    n = jnp.maximum(jnp.asarray(total, jnp.float32), 1.0)
+    warm = jnp.maximum(jnp.floor(n / 10.0), 1.0)
+    rise = s / warm
+    fall = 0.5 * (1.0 + jnp.cos(jnp.pi * jnp.clip((s - warm) / jnp.maximum(n - warm, 1.0), 0.0, 1.0)))
+    return cfg.phase3_lr * jnp.where(s < warm, rise, fall)
+
+
+def refit_schedule(cfg: WatermarkConfig) -> optax.Schedule:
+    """:func:`refit_rate` over the configured ``phase3_steps``."""
+    return lambda count: refit_rate(cfg, count, max(int(cfg.phase3_steps), 1))
+
+
+def refit_optimizer(cfg: WatermarkConfig) -> optax.GradientTransformation:
+    """Phase 3's Adam moments over the decoder's weights; the step scales them by :func:`refit_rate`."""
+    del cfg  # the rate is the step's argument (its schedule's length may change during the run)
+    return optax.scale_by_adam()
+
+
+# Decoder steps timed one by one (after the first, which compiles) before phase 3's schedule is sized to the
+# time left, by their median (robust to one that compiles again or meets a busy moment).
+SIZING_STEPS = 20
+# The share of the minutes left the sized schedule plans for (steps vary; the budget ends an overrun).
+SIZING_MARGIN = 0.97
+
+
+def make_refit_step(
+    cfg: WatermarkConfig, decoder_state: PyTree
+) -> Callable[[PyTree, Any, jax.Array, RefitSet, Any, Any], tuple[PyTree, Any, jax.Array]]:
+    """A jitted ``(decoder params, Adam state, key, data, step, total) -> (params, state, loss)`` over
+    batches of ``data`` (a :class:`RefitSet` of arrays: arguments, not constants baked into the compiled
+    step), at :func:`refit_rate` of ``step`` in a ``total``-step schedule (int32 scalars, data too).
+
+    A batch: ``phase3_batch`` renders (ID and view uniform) and a quarter as many negatives; each image
+    rounded to 8 bits with probability ½; the run's augmentations when phase 2 had them
+    (``augment_prob > 0``); then the read window, LL2 and the decoder (eval-mode BatchNorm, as phase 2).
+    """
+    batch = int(cfg.phase3_batch)
+    n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.phase3_lambda_clean else 0
+    window, background, _ = read_window.of_config(cfg)  # phase 3 trains on the centred window (findings)
+    tx = refit_optimizer(cfg)
+
+    def prepare(key: jax.Array, images: jax.Array) -> jax.Array:
+        k_round, k_aug = jax.random.split(key)
+        rounded = jnp.round(images * 255.0) / 255.0
+        images = jnp.where(jax.random.bernoulli(k_round, 0.5, (images.shape[0], 1, 1, 1)), rounded, images)
+        if cfg.augment_prob > 0 and cfg.augment_per_step > 0:
+            images = augment.random_policy(k_aug, images, cfg.augment_strength, k=cfg.augment_per_step,
+                                           p=cfg.augment_prob, names=cfg.augment_names or None)  # fmt: skip
+        return dwt.ll2(read_window.read_window(images, window, background), cfg.wavelet)
+
+    def logits_of(params: PyTree, ll2: jax.Array) -> jax.Array:
+        return decoder_lib.apply_ll2({**decoder_state, "params": params}, ll2)
+
+    @xla_cpu.jit_cpu_tuned
+    def step(params: PyTree, opt_state: Any, key: jax.Array, data: RefitSet, index: Any,
+             total: Any) -> tuple[PyTree, Any, jax.Array]:  # fmt: skip
+        k_id, k_view, k_neg, k_pos, k_clean = jax.random.split(key, 5)
+        n_ids, n_views = data.renders.shape[:2]
+        ids = jax.random.randint(k_id, (batch,), 0, n_ids)
+        seen = prepare(k_pos, data.renders[ids, jax.random.randint(k_view, (batch,), 0, n_views)])
+        if n_neg:  # an empty batch would reach the augmentations' convolutions (a zero group count)
+            negatives = data.negatives[jax.random.randint(k_neg, (n_neg,), 0, data.negatives.shape[0])]
+            clean = prepare(k_clean, negatives)
+        messages = data.messages.astype(jnp.float32)
+
+        def loss_fn(p: PyTree) -> jax.Array:
+            z = logits_of(p, seen)
+            loss = cfg.lambda_message * losses.bce_with_logits(z, messages[ids], cfg.bce_temperature)
+            if cfg.lambda_key:
+                loss = loss + cfg.lambda_key * losses.key_cross_entropy(z, messages, ids, cfg.bce_temperature)
+            if n_neg:
+                z_clean = logits_of(p, clean)
+                clean_bce = losses.bce_with_logits(z_clean, 0.5, cfg.bce_temperature)
+                loss = loss + cfg.phase3_lambda_clean * clean_bce
+            return loss
+
+        loss, grads = jax.value_and_grad(loss_fn)(params)
+        moments, opt_state = tx.update(grads, opt_state, params)
+        rate = refit_rate(cfg, index, total)
+        return jax.tree.map(lambda p, m: p - rate * m, params, moments), opt_state, loss
+
+    return step
+
+
+def refit_decoder(
+    cfg: WatermarkConfig,
+    decoder_vars: PyTree,
+    data: RefitSet,
+    *,
+    keep_going: Callable[[], bool] = lambda: True,
+    seconds_left: Callable[[], float] | None = None,
+    progress: bool = False,
+) -> tuple[PyTree, dict[str, float]]:
+    """Up to ``phase3_steps`` decoder steps on ``data`` from ``decoder_vars`` (``{"params", "batch_stats",
+    ...}``; only ``params`` change). ``keep_going()`` is asked before each step (the time budget).
+
+    ``seconds_left()`` (the time budget's, when it has one): after :data:`SIZING_STEPS` timed steps the
+    schedule is shortened to the steps that fit in :data:`SIZING_MARGIN` of it, so that its warm-up and
+    cosine decay end inside the budget, not cut off at a high rate on a slower machine. Without it, or when
+    all the steps fit, the schedule is ``phase3_steps`` long and the run deterministic in
+    ``watermark.seed``. Returns the new variables and ``{"steps", "scheduled", "loss"}`` (steps taken, the
+    schedule's length, the last step's loss).
+    """
+    step = make_refit_step(cfg, decoder_vars)
+    # Committed to the device as the step's outputs are: otherwise the second step compiles again (another
+    # cache key), and a timed step that compiles would shorten the sized schedule.
+    device = jax.devices()[0]
+    arrays = jax.device_put(jax.tree.map(jnp.asarray, data), device)
+    params = jax.device_put(decoder_vars["params"], device)
+    opt_state = jax.device_put(refit_optimizer(cfg).init(params), device)
+    key = jax.random.fold_in(jax.random.key(int(cfg.seed)), 0xDEC3)
+    loss = jnp.full((), jnp.nan)
+    total = int(cfg.phase3_steps)
+    done = 0
+    timed: list[float] = []
+    bar = tqdm(total=total, disable=not progress, desc="embed phase 3 (decoder)", unit="step",
+               dynamic_ncols=True)  # fmt: skip
+    try:
+        while done < total:
+            if not keep_going():
+                break
+            if seconds_left is not None and done == SIZING_STEPS + 1:  # steps 1..SIZING_STEPS timed
+                step_s = float(np.median(timed))
+                fits = done + int(SIZING_MARGIN * max(seconds_left(), 0.0) / step_s)
+                total = max(min(total, fits), done + 1)
+                bar.total = total
+                bar.refresh()
+            tick = time.perf_counter()
+            params, opt_state, loss = step(params, opt_state, jax.random.fold_in(key, done), arrays,
+                                           jnp.int32(done), jnp.int32(total))  # fmt: skip
+            if seconds_left is not None and 1 <= done <= SIZING_STEPS:  # the first step compiles: not timed
+                jax.block_until_ready(loss)
+                timed.append(time.perf_counter() - tick)
+            done += 1
+            if done % 25 == 0:  # reading the loss waits for the step: not every step
+                bar.set_postfix(loss=f"{float(loss):.4f}")
+            bar.update(1)
+    finally:
+        bar.close()
+    return {**decoder_vars, "params": params}, {"steps": float(done), "scheduled": float(total),
+                                                "loss": float(loss)}  # fmt: skip

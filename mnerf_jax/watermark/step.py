@@ -1,0 +1,453 @@
+"""The compiled watermark-embedding step: its static spec, optimiser groups, losses and one jitted step.
+
+One step renders one training view with the FiLM conditioning of K IDs (``watermark.ids_per_step``; one
+geometry pass for all of them) and back-propagates the mean of their two-phase objectives by deferred
+back-propagation (:mod:`mnerf_jax.watermark.deferred`); :mod:`mnerf_jax.watermark.embed` drives it (the
+objective and the phases are described there).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import optax
+
+from mnerf_jax.core import xla_cpu
+from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+from mnerf_jax.imaging import augment, losses
+from mnerf_jax.imaging import metrics as metrics_lib
+from mnerf_jax.reader import decoder as decoder_lib
+from mnerf_jax.reader import dwt, read_window
+from mnerf_jax.tensorf import raymarch, render
+from mnerf_jax.watermark import model as watermark
+from mnerf_jax.watermark import sample_cache
+from mnerf_jax.watermark.deferred import PyTree, RenderFn, deferred_grad
+from mnerf_jax.watermark.run import PHASE3_DEFAULTS, EmbedError
+
+
+@flax.struct.dataclass
+class EmbedState:
+    """Everything the jitted embedding step reads and writes.
+
+    Attributes:
+      params: the watermarked field (``watermark.add_watermark`` layout).
+      decoder: decoder variables ``{"params", "batch_stats"[, "pooling"]}``; only ``params`` train (phase 2),
+        BatchNorm keeps its running statistics (eval mode).
+      opt_state: optax state of :func:`make_optimizer` over ``{"field": params, "decoder": decoder params}``.
+      step: ``[]`` int32, steps completed (phase 1 then phase 2).
+      key: PRNG key of the run; step ``s`` uses ``fold_in(key, s)``.
+    """
+
+    params: PyTree
+    decoder: PyTree
+    opt_state: Any
+    step: jax.Array
+    key: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class StepSpec:
+    """The static part of one embedding step (hashable: one compilation per distinct value)."""
+
+    model: ModelConfig
+    wm: WatermarkConfig
+    adam_b1: float
+    adam_b2: float
+    phase: int
+    height: int
+    width: int
+    density_budget: int
+    colour_budget: int
+
+
+def total_steps(cfg: WatermarkConfig) -> int:
+    return sum(watermark.phase_steps(cfg))
+
+
+# Fields of WatermarkConfig that only the host loop reads (which step is in which phase, keys, seeds,
+# checkpoints, identification, the time budget, and every phase-3 setting: phase 3 has its own step). The
+# learning-rate decay's length is an argument of the compiled step, so the schedule can be sized after its
+# steps are timed (embed_budget.py).
+_HOST_ONLY_FIELDS = (
+    "min_hamming", "key_seed", "checkpoint_every", "seed", "id_threshold", "id_test", "keep_checkpoints",
+    "time_budget_min", "budget_sizes_field", "phase1_steps", "phase2_steps", "fidelity_psnr_start",
+    "fidelity_ramp",
+    *PHASE3_DEFAULTS,
+)  # fmt: skip
+
+
+def step_config(cfg: WatermarkConfig) -> WatermarkConfig:
+    """``cfg`` as :class:`StepSpec` holds it: host-only fields at their defaults, so runs that differ only
+    there (the schedule's length included) share one compilation of :func:`embed_step` (the phase itself is
+    ``StepSpec.phase``)."""
+    defaults = WatermarkConfig()
+    return dataclasses.replace(cfg, **{name: getattr(defaults, name) for name in _HOST_ONLY_FIELDS})
+
+
+def phase_of(step: int, cfg: WatermarkConfig) -> int:
+    """1 for the first ``phase1_steps`` steps, 2 until the field's schedule ends, 3 after (the decoder alone,
+    ``decoder_refit``)."""
+    first, second = watermark.phase_steps(cfg)
+    return 1 if step < first else 2 if step < first + second else 3
+
+
+def param_labels(tree: PyTree, cfg: WatermarkConfig) -> PyTree:
+    """Optimiser group of every leaf of ``{"field": params, "decoder": decoder params}``.
+
+    ``grid``: the watermark VM factors (``lr_grid``); ``source_grid``: the fitted density and appearance
+    factors (``lr_grid · lr_source_scale``); ``embedding``: Emb and Mod (``lr_embedding``: each ID's row of
+    Emb only learns on the steps that draw that ID); ``network``: the MLP's extra rows and the position MLP
+    (``lr_network``); ``source_network``: the fitted basis and MLP (``lr_network · lr_source_scale``);
+    ``decoder`` (``lr_decoder``); ``frozen``: the density grid of the frozen_geometry variant, and the
+    whole fitted field with ``cache_source``.
+    """
+    density_label = "source_grid" if watermark.trains_density(cfg) else "frozen"
+    frozen = cfg.cache_source  # the fitted field is cached, so it cannot change
+    grid_label = "frozen" if frozen else "source_grid"
+    network_label = "frozen" if frozen else "source_network"
+
+    def field_label(path: tuple[Any, ...], _: Any) -> str:
+        names = [getattr(p, "key", getattr(p, "name", None)) for p in path]
+        top = names[0] if names else None
+        second = names[1] if len(names) > 1 else None
+        if top == "wm":
+            return "embedding" if second in ("emb", "mod") else "grid" if second == "grid" else "network"
+        if top == "density":
+            return density_label
+        if top == "appearance":
+            return grid_label
+        if top == "mlp" and second in ("out_extra", "in_extra"):
+            return "network"
+        return network_label
+
+    return {
+        "field": jax.tree_util.tree_map_with_path(field_label, tree["field"]),
+        "decoder": jax.tree.map(lambda _: "decoder", tree["decoder"]),
+    }
+
+
+def make_optimizer(
+    cfg: WatermarkConfig, adam_b1: float = 0.9, adam_b2: float = 0.99, total: int | jax.Array | None = None
+) -> optax.GradientTransformation:
+    """Adam per group with exponential decay ``lr · decay_ratio^(t / total)``; ``total`` (default: the
+    schedule's steps, ``total_steps(cfg)``) may be traced."""
+    total = jnp.maximum(total_steps(cfg) if total is None else total, 1)
+
+    def group(lr: float) -> optax.GradientTransformation:
+        decay = float(cfg.lr_decay_ratio)
+        return optax.chain(
+            optax.scale_by_adam(b1=adam_b1, b2=adam_b2, eps=1e-8),
+            optax.scale_by_schedule(lambda count: -lr * decay ** (count / total)),
+        )
+
+    transforms = {
+        "grid": group(cfg.lr_grid),
+        "network": group(cfg.lr_network),
+        "source_grid": group(cfg.lr_grid * cfg.lr_source_scale),
+        "source_network": group(cfg.lr_network * cfg.lr_source_scale),
+        "decoder": group(cfg.lr_decoder),
+        "embedding": group(cfg.lr_embedding),
+        "frozen": optax.set_to_zero(),
+    }
+    return optax.multi_transform(transforms, functools.partial(param_labels, cfg=cfg))
+
+
+def render_patch_fn(
+    spec: StepSpec, geometry: raymarch.Geometry, ids: jax.Array, cache: dict[str, jax.Array] | None = None
+) -> RenderFn:
+    """Patch renders with the IDs ``ids [K]``: ``rgb [R, 3K]`` (ID ``ids[k]`` in columns ``3k:3k+3``).
+
+    With ``cache`` (``watermark.cache_source``: the view's ``cache_*`` buffers) the render is the whole
+    view from its cached samples (one patch covers it; the rays are not read)."""
+    if cache is not None:
+        return sample_cache.view_render_fn(spec.wm, geometry.white_bg, ids, cache)
+    fns = watermark.field_fns(spec.model, spec.wm)
+
+    def render_fn(params: PyTree, rays: PyTree, key: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+        # (γ, β) once per call from the ID, not per sample; gradients reach Emb and Mod through them.
+        # One ID: the plain cond (exactly the one-ID render); several: one geometry pass for all of them.
+        if ids.shape[0] == 1:
+            cond = watermark.condition(params, ids[0], spec.wm)
+        else:
+            cond = watermark.condition_many(params, ids, spec.wm)
+        out = render.render_rays(
+            fns, params, cond, rays[0], rays[1], geometry, key,
+            train=spec.wm.jitter, density_budget=spec.density_budget, colour_budget=spec.colour_budget,
+        )  # fmt: skip
+        return out["rgb"], {"density_count": out["density_count"], "colour_count": out["colour_count"]}
+
+    return render_fn
+
+
+def uses_fidelity(cfg: WatermarkConfig) -> bool:
+    """True when the quality budget (``watermark.fidelity_psnr``) is on."""
+    return cfg.fidelity_psnr > 0
+
+
+def uses_clean_renders(cfg: WatermarkConfig) -> bool:
+    """True when a step needs the clean model's render of its view: the quality budget is on, or the clean
+    term reads the clean model's renders (``watermark.clean_negative``)."""
+    return uses_fidelity(cfg) or (cfg.lambda_clean > 0 and cfg.clean_negative == "clean_model")
+
+
+def fidelity_budget_db(cfg: WatermarkConfig, step: int, total: int) -> float:
+    """The quality budget (dB of PSNR against the clean model's render) at step ``step`` of a ``total``-step
+    schedule: ``fidelity_psnr``, or with ``fidelity_psnr_start`` > 0 that until the fraction
+    ``fidelity_ramp[0]`` of the steps, then linear in dB up to ``fidelity_psnr`` at ``fidelity_ramp[1]``,
+    then ``fidelity_psnr``. Host side: the step receives the budget as data, so the ramp compiles once."""
+    if not cfg.fidelity_psnr_start:
+        return float(cfg.fidelity_psnr)
+    first, last = (float(f) * max(int(total), 1) for f in cfg.fidelity_ramp)
+    if step <= first:
+        return float(cfg.fidelity_psnr_start)
+    if step >= last:
+        return float(cfg.fidelity_psnr)
+    span = cfg.fidelity_psnr - cfg.fidelity_psnr_start
+    return float(cfg.fidelity_psnr_start + span * (step - first) / (last - first))
+
+
+def fidelity_loss(
+    cfg: WatermarkConfig, renders: jax.Array, reference: jax.Array, budget: jax.Array | None = None
+) -> tuple[jax.Array, jax.Array]:
+    """``(mean over K of relu(MSE_k / MSE_budget − 1), mean MSE)`` of ``renders [K, H, W, 3]`` against the
+    clean model's ``reference [H, W, 3]``; ``MSE_budget`` is ``budget`` (a scalar, traced: the ramp's value
+    at this step) or ``10^(−fidelity_psnr / 10)``: zero, with no gradient, for renders inside it."""
+    mse = jnp.mean(jnp.square(renders - reference[None]), axis=(1, 2, 3))
+    if budget is None:
+        budget = metrics_lib.psnr_to_mse(cfg.fidelity_psnr)
+    return jnp.mean(jax.nn.relu(mse / budget - 1.0)), jnp.mean(mse)
+
+
+def perceptual_loss(kind: str, image: jax.Array, reference: jax.Array, vgg_params: Any = None) -> jax.Array:
+    """Phase 1's perceptual term: Watson-DCT (default) or LPIPS-VGG."""
+    if kind == "watson":
+        return losses.watson_dct_loss(image, reference, chroma=True)
+    if kind == "vgg":
+        return losses.vgg_perceptual_loss(image, reference, vgg_params)
+    raise EmbedError(f"unknown watermark.perceptual {kind!r} (watson | vgg)")
+
+
+def split_renders(image: jax.Array) -> jax.Array:
+    """``[..., H, W, 3K]`` (K IDs' renders side by side in the channels) → ``[K, ..., H, W, 3]``."""
+    k = image.shape[-1] // 3
+    return jnp.moveaxis(image.reshape(*image.shape[:-1], k, 3), -2, 0)
+
+
+def patch_loss(cfg: WatermarkConfig, rgb: jax.Array, target: jax.Array) -> jax.Array:
+    """Phase 2's patch loss ``λ_rgb·L1 + λ_TV·TV + λ_SSIM·(1 − SSIM)`` on ``[S, S, 3]`` patches; for K
+    renders of one patch (``rgb [S, S, 3K]``) the mean over them."""
+    if rgb.shape[-1] != 3:
+        return jnp.mean(jax.vmap(lambda r: patch_loss(cfg, r, target))(split_renders(rgb)))
+    loss = cfg.lambda_rgb * jnp.mean(jnp.abs(rgb - target))
+    if cfg.lambda_tv:
+        loss = loss + cfg.lambda_tv * losses.total_variation(rgb)
+    if cfg.lambda_ssim:
+        loss = loss + cfg.lambda_ssim * losses.ssim_loss(rgb, target)
+    return loss
+
+
+def message_loss(
+    cfg: WatermarkConfig,
+    decode: Callable[[jax.Array, PyTree], jax.Array],
+    renders: jax.Array,
+    dec_params: PyTree,
+    message: jax.Array,
+    keys: jax.Array | None = None,
+    ids: jax.Array | None = None,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(message term, mean BCE, key term)`` of ``decode(renders [K, H, W, 3], dec_params) -> logits
+    [K, L]`` against ``message [K, L]`` (BCE at ``bce_temperature``).
+
+    The term is the mean BCE; with ``id_loss_power`` p > 0 and K > 1 its gradient to the renders is that of
+    the mean of the K BCEs weighted by ``BCE_k^p`` (held constant; the renders read worst weigh most), while
+    the decoder's stays the plain mean's, and so does the term's value. Weighting the decoder's gradient too
+    taught it the weak IDs' keys on barely marked renders: 3.5 % of clean renders were claimed (lego, 16
+    IDs, the CPU hour). This costs a second decoder pass.
+
+    The key term (zero unless ``lambda_key`` > 0, which needs every ID's message ``keys [N, L]`` and the
+    renders' ``ids [K]``) is :func:`losses.key_cross_entropy` on the same logits, its gradient to both
+    the renders and the decoder, unweighted.
+    """
+    use_key = cfg.lambda_key > 0
+    if use_key and (keys is None or ids is None):
+        raise ValueError("watermark.lambda_key > 0 needs every ID's message (keys) and the renders' ids")
+
+    def key_term(z: jax.Array) -> jax.Array:
+        if not use_key:
+            return jnp.zeros((), jnp.float32)
+        return losses.key_cross_entropy(z, keys, ids, cfg.bce_temperature)
+
+    if cfg.id_loss_power <= 0 or renders.shape[0] == 1:
+        logits = decode(renders, dec_params)
+        bce = losses.bce_with_logits(logits, message, cfg.bce_temperature)
+        return bce, bce, key_term(logits)
+
+    def per_id(z: jax.Array) -> jax.Array:
+        return jax.vmap(lambda zk, mk: losses.bce_with_logits(zk, mk, cfg.bce_temperature))(z, message)
+
+    # The decoder's gradient and the value through this pass (renders held), the renders' through the next.
+    z_dec = decode(jax.lax.stop_gradient(renders), dec_params)
+    z_field = decode(renders, jax.lax.stop_gradient(dec_params))
+    bce_k = per_id(z_dec)
+    weight = jax.lax.stop_gradient(bce_k) ** cfg.id_loss_power
+    weight = weight / jnp.maximum(jnp.sum(weight), jnp.finfo(jnp.float32).tiny)
+    field_k = per_id(z_field)
+    bce = jnp.mean(bce_k)
+    field = jnp.sum(weight * field_k)
+    key_field = key_term(z_field)
+    key = key_term(z_dec) + key_field - jax.lax.stop_gradient(key_field)
+    return bce + field - jax.lax.stop_gradient(field), bce, key
+
+
+def windowed(cfg: WatermarkConfig, images: jax.Array) -> jax.Array:
+    """What the decoder reads of images ``[B, H, W, 3]``: the run's read window (``watermark.read_window``;
+    after the augmentations, as a verifier reads an attacked image)."""
+    fraction, background, _ = read_window.of_config(cfg)
+    return read_window.read_window(images, fraction, background)
+
+
+def make_image_loss(
+    spec: StepSpec,
+    key: jax.Array,
+    message: jax.Array,
+    target_image: jax.Array,
+    decoder_state: PyTree,
+    vgg_params: Any = None,
+    reference: jax.Array | None = None,
+    keys: jax.Array | None = None,
+    ids: jax.Array | None = None,
+    fidelity_budget: jax.Array | None = None,
+) -> Callable[[jax.Array, PyTree], tuple[jax.Array, dict[str, jax.Array]]]:
+    """The image-level loss ``(image [H, W, 3K], decoder params) -> (loss, {"bce", "key", "perceptual"})``.
+
+    ``image`` holds the K renders of one view side by side in its channels (:func:`split_renders`), one
+    per row of ``message [K, L]``; each term is the mean over the K renders.
+    Phase 2: ``augment_per_step`` random augmentations (``key``) → LL2 → decoder → BCE(T) against
+    the render's message and (``lambda_key``) the key cross-entropy against every ID's message
+    ``keys [N, L]`` given the renders' ``ids [K]`` (:func:`message_loss`), plus (``lambda_clean``) BCE(T) of
+    the equally augmented unwatermarked view against ½: ``target_image``, or the clean model's render
+    ``reference [H, W, 3]`` (``clean_negative = "clean_model"``).
+    Phase 1: no augmentation, plus the perceptual term against ``target_image``. Both phases, with the
+    quality budget on: ``lambda_fidelity ·`` :func:`fidelity_loss` against ``reference`` (its MSE budget
+    ``fidelity_budget``, this step's value of the ramp, or the config's constant one).
+    ``decoder_state``: the decoder's variables (BatchNorm statistics, pooling); their ``params`` are replaced
+    by the argument.
+    """
+    cfg = spec.wm
+    if uses_clean_renders(cfg) and reference is None:
+        raise ValueError("the quality budget and clean_negative='clean_model' need the clean model's render")
+    negative = reference if cfg.clean_negative == "clean_model" else target_image
+
+    def decode(images: jax.Array, dec_params: PyTree) -> jax.Array:
+        """Logits ``[B, L]`` of ``images [B, H, W, 3]`` as the decoder sees them (augmented in phase 2: the
+        same key, so the same augmentations for every call; their random parameters per image)."""
+        seen = images
+        if spec.phase == 2 and cfg.augment_per_step > 0:
+            seen = augment.random_policy(key, seen, cfg.augment_strength, k=cfg.augment_per_step,
+                                         p=cfg.augment_prob, names=cfg.augment_names or None)  # fmt: skip
+        variables = {**decoder_state, "params": dec_params}
+        return decoder_lib.apply_ll2(variables, dwt.ll2(windowed(cfg, seen), cfg.wavelet))
+
+    def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
+        renders = split_renders(image)  # [K, H, W, 3]
+        term, bce, key = message_loss(cfg, decode, renders, dec_params, message, keys, ids)
+        loss = cfg.lambda_message * term + cfg.lambda_key * key
+        if spec.phase == 2 and cfg.lambda_clean:
+            clean_logits = decode(negative[None], dec_params)
+            loss = loss + cfg.lambda_clean * losses.bce_with_logits(clean_logits, 0.5, cfg.bce_temperature)
+        perc = jnp.zeros((), jnp.float32)
+        if spec.phase == 1 and cfg.lambda_perceptual:
+            targets = jnp.broadcast_to(target_image, renders.shape)
+            perc = perceptual_loss(cfg.perceptual, renders, targets, vgg_params)
+            loss = loss + cfg.lambda_perceptual * perc
+        aux = {"bce": bce, "key": key, "perceptual": perc}
+        if uses_fidelity(cfg):
+            aux["fidelity"], aux["mse_clean"] = fidelity_loss(cfg, renders, reference, fidelity_budget)
+            loss = loss + cfg.lambda_fidelity * aux["fidelity"]
+        return loss, aux
+
+    return image_loss
+
+
+# The top-level step takes xla_cpu.xla_compiler_options(), as the fit's step does: without them XLA:CPU routes
+# the renders' sampled-feature arithmetic through YNNPACK fusions (lego 1/8, 16 IDs: 1.87 -> 1.49 s a step).
+@xla_cpu.jit_cpu_tuned(static_argnames=("spec",))
+def embed_step(
+    state: EmbedState,
+    geometry: raymarch.Geometry,
+    batch: dict[str, jax.Array],
+    layout_index: jax.Array,
+    layout_owner: jax.Array,
+    vgg_params: Any,
+    total: jax.Array,
+    *,
+    spec: StepSpec,
+) -> tuple[EmbedState, dict[str, jax.Array]]:
+    """One optimisation step on one view rendered with K IDs (deferred back-propagation).
+
+    ``total``: int32 scalar, the steps of the whole schedule (the learning rates decay over it).
+
+    batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [K, L]`` (0/1 float), ``id [K]`` int32 (distinct),
+    ``keys [N, L]`` every ID's message (read where ``lambda_key`` > 0),
+    and where :func:`uses_clean_renders` ``reference [H·W, 3]``: the clean model's render of the view;
+    with the quality budget, ``fidelity_mse []``: its MSE budget at this step (:func:`fidelity_budget_db`).
+    Returns the new state and scalar metrics (loss terms, bit accuracy of the un-augmented renders, PSNR;
+    means over the K renders; largest per-patch sample counts).
+    """
+    cfg = spec.wm
+    h, w = spec.height, spec.width
+    key = jax.random.fold_in(state.key, state.step)
+    k_render, k_aug = jax.random.split(key)
+    message = batch["message"]
+    target_image = batch["target"].reshape(h, w, 3)
+    rays = (batch["rays_o"], batch["rays_d"])
+    reference = batch["reference"].reshape(h, w, 3) if "reference" in batch else None
+    image_loss = make_image_loss(spec, k_aug, message, target_image, state.decoder, vgg_params, reference,
+                                 batch.get("keys"), batch["id"], batch.get("fidelity_mse"))  # fmt: skip
+    ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
+    cache = {k: v for k, v in batch.items() if k.startswith("cache_")} or None
+    render_fn = render_patch_fn(spec, geometry, batch["id"], cache)
+    loss, aux, image, g_field, g_dec = deferred_grad(
+        render_fn, image_loss, ploss, state.params, state.decoder["params"],
+        rays, batch["target"], layout_index, layout_owner, k_render, h, w,
+    )  # fmt: skip
+    if spec.phase == 1:
+        g_dec = jax.tree.map(jnp.zeros_like, g_dec)  # the decoder is frozen in phase 1
+    grads = {"field": g_field, "decoder": g_dec}
+    values = {"field": state.params, "decoder": state.decoder["params"]}
+    tx = make_optimizer(cfg, spec.adam_b1, spec.adam_b2, total)
+    updates, opt_state = tx.update(grads, state.opt_state, values)
+    new_values = optax.apply_updates(values, updates)
+    # Bit accuracy of the renders as they are (no augmentation), with the decoder before this update.
+    renders = split_renders(image)
+    logits = decoder_lib.apply_ll2(state.decoder, dwt.ll2(windowed(cfg, renders), cfg.wavelet))
+    metrics = {
+        "loss": loss,
+        "loss_image": aux["loss_image"],
+        "loss_patch": aux["loss_patch"],
+        "bce": aux["bce"],
+        "key_ce": aux["key"],
+        "perceptual": aux["perceptual"],
+        "bit_acc": jnp.mean(((logits > 0).astype(jnp.float32) == message).astype(jnp.float32)),
+        "psnr": metrics_lib.mse_to_psnr(jnp.mean(jnp.square(renders - target_image))),
+        "density_count": aux["render_stats"]["density_count"],
+        "colour_count": aux["render_stats"]["colour_count"],
+    }
+    if uses_fidelity(cfg):
+        metrics["fidelity"] = aux["fidelity"]
+        metrics["psnr_clean"] = metrics_lib.mse_to_psnr(aux["mse_clean"])
+        if "fidelity_mse" in batch:
+            metrics["psnr_budget"] = metrics_lib.mse_to_psnr(batch["fidelity_mse"])
+    new_state = state.replace(
+        params=new_values["field"],
+        decoder={**state.decoder, "params": new_values["decoder"]},
+        opt_state=opt_state,
+        step=state.step + 1,
+    )
+    return new_state, metrics
