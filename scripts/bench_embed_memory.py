@@ -45,7 +45,7 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     from mnerf_jax.watermark import step as wm_step
 
     source = embed.load_source(run)
-    config = embed.resolve_config(source, None, [f"watermark.patch_size={patch}"], num_ids=4, bits=16)
+    config = embed.resolve_config(source, None, [f"watermark.schedule.patch_size={patch}"], num_ids=4, bits=16)
     cfg = config.watermark
     cams = source.load_scene(None, splits=("train",)).split("train").cameras
     k = size / cams.width
@@ -53,7 +53,7 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     cams = dataclasses.replace(cams, fx=cams.fx * k, fy=cams.fy * k, cx=cams.cx * k, cy=cams.cy * k,
                                width=size, height=height)  # fmt: skip
     rays_o, rays_d = camera_rays(cams, 0)
-    layout = deferred.patch_layout(height, size, deferred.tiling_patch_size(height, size, cfg.patch_size, 11))
+    layout = deferred.patch_layout(height, size, deferred.tiling_patch_size(height, size, cfg.schedule.patch_size, 11))
     index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
     root = jax.random.key(0)
     params = watermark.add_watermark(jax.random.fold_in(root, 1), source.params, cfg, 4)

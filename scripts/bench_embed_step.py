@@ -31,7 +31,7 @@ def bench(run: str, data: str | None, num_ids: int, bits: int, phase1: int, phas
     source = embed.load_source(run)
     cfg = embed.resolve_config(source, None, overrides, num_ids, bits).watermark
     schedule = model.phase_steps(cfg)
-    short = [*overrides, f"model.phase1_steps={phase1}", f"model.phase2_steps={phase2}"]
+    short = [*overrides, f"watermark.schedule.phase1_steps={phase1}", f"watermark.schedule.phase2_steps={phase2}"]
     stamps: list[float] = []
     phases: list[int] = []
 

@@ -123,7 +123,7 @@ def main() -> None:
                         "field can change colour without new geometry")  # fmt: skip
     parser.add_argument("--read-window", type=float, default=0.0, metavar="FRACTION",
                         help="the decoder reads a window of this fraction of the shorter side, centred on "
-                        "the object (watermark.read_window; 0: the whole image)")  # fmt: skip
+                        "the object (watermark.reading.window; 0: the whole image)")  # fmt: skip
     parser.add_argument("--json", action="store_true", help="one JSON line per residual PSNR")
     args = parser.parse_args()
 

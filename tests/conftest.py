@@ -150,27 +150,27 @@ TINY_FIT = [
     "model.appearance_ranks=8,8,8", "model.app_features=12", "model.mlp_width=32",
 ]  # fmt: skip
 TINY_EMBED = [
-    "watermark.patch_size=16", "watermark.phase1_steps=40", "watermark.phase2_steps=40",
-    "watermark.checkpoint_every=40", "watermark.wm_ranks=4,4,4",
+    "watermark.schedule.patch_size=16", "watermark.schedule.phase1_steps=40", "watermark.schedule.phase2_steps=40",
+    "watermark.checkpoint_every=40", "watermark.module.wm_ranks=4,4,4",
     # 80 steps are enough with the fitted field at 0.3x the paper's rates and the uncalibrated random
     # decoder of random_decoder (whitening gain ~1e3: tiny changes flip its bits); the CLI tests need a
-    # strong watermark, not a realistic one. With both IDs on every step (watermark.ids_per_step's default),
+    # strong watermark, not a realistic one. With both IDs on every step (watermark.schedule.ids_per_step's default),
     # 1.0x reached 0.88 bits but cost 3.5 dB of the 18.6 dB clean PSNR; 0.3x: 0.82 bits, 12/12 renders
     # identified, 1.6 dB (one ID per step at 1.0x: 0.75 bits).
-    "watermark.lr_source_scale=0.3",
+    "watermark.optim.lr_source_scale=0.3",
     # The paper's losses, without the procedural preset's quality budget (the figures above were measured so).
-    "watermark.fidelity_psnr=0",
+    "watermark.fidelity.psnr=0",
     # ... and the decoder rate and clean term those figures were measured with (the defaults are 1e-3, 0.3).
-    "watermark.lr_decoder=1e-4", "watermark.lambda_clean=0",
+    "watermark.optim.lr_decoder=1e-4", "watermark.losses.lambda_clean=0",
     # Three of the 14 augmentations, filters that barely move a 32-px view's LL2: phase 2's step compiles in
     # ~18 s instead of ~29 s, and the one-ID-per-step run identified 12/12 test renders at 0.75 bits instead
     # of 11/12 at 0.66 (photometric subsets such as brightness, contrast, saturation left it at chance: this
     # decoder's whitening gain makes any colour change a large one). test_augment compiles and differentiates
     # the policy over all 14; test_embed checks that the empty default hands the step the whole registry.
-    "watermark.augment_names=gaussian_blur,box_blur,sharpness",
+    "watermark.augment.names=gaussian_blur,box_blur,sharpness",
     # The paper's path, ray-marched with deferred patches and an adapting source (the procedural preset caches
     # its frozen source; tests/test_sample_cache.py embeds that way).
-    "watermark.cache_source=false", "watermark.jitter=true",
+    "watermark.schedule.cache_source=false", "watermark.schedule.jitter=true",
 ]  # fmt: skip
 
 

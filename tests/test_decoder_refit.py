@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mnerf_jax.core.config import WatermarkConfig
+from mnerf_jax.core.config import watermark_from_flat as wm_config
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.data import trajectory
 from mnerf_jax.data.types import Cameras, NDCSpace
@@ -126,7 +126,7 @@ def _bit_accuracy(variables: dict, data: decoder_refit.RefitSet) -> float:
 
 def test_the_refit_decoder_learns_the_ids_keys_and_is_deterministic() -> None:
     data, variables = _two_class_set()
-    cfg = WatermarkConfig(phase3_steps=100, phase3_batch=8, phase3_lr=1e-3, seed=3)
+    cfg = wm_config(phase3_steps=100, phase3_batch=8, phase3_lr=1e-3, seed=3)
     before = _bit_accuracy(variables, data)
     refit, metrics = decoder_refit.refit_decoder(cfg, variables, data)
     assert metrics["steps"] == 100 and np.isfinite(metrics["loss"])
@@ -151,7 +151,7 @@ def test_phase_three_weighs_its_negatives_by_its_own_weight_not_phase_twos() -> 
     arrays = jax.tree.map(jax.numpy.asarray, data)
 
     def loss(**weights: float) -> float:
-        cfg = WatermarkConfig(phase3_steps=10, phase3_batch=8, augment_prob=0.0, **weights)  # fast to compile
+        cfg = wm_config(phase3_steps=10, phase3_batch=8, augment_prob=0.0, **weights)  # fast to compile
         step = decoder_refit.make_refit_step(cfg, variables)
         opt_state = decoder_refit.refit_optimizer(cfg).init(variables["params"])
         return float(step(variables["params"], opt_state, jax.random.key(5), arrays, 0, 10)[2])
@@ -168,17 +168,17 @@ def test_a_run_from_before_a_phase_3_setting_existed_counts_it_at_its_default(tm
     # the same settings is the no-op, not a refusal; another phase-3 setting is still refused.
     from mnerf_jax.core.config import Config
 
-    wm = WatermarkConfig(phase1_steps=2, phase2_steps=3, phase3_steps=4)
-    saved = {k: getattr(wm, k) for k in wm_run.PHASE3_DEFAULTS if k != "phase3_lambda_clean"}
+    wm = wm_config(phase1_steps=2, phase2_steps=3, phase3_steps=4)
+    saved = {f"phase3_{k}": v for k, v in dataclasses.asdict(wm.phase3).items() if k != "lambda_clean"}
     meta = {"step": 9, "config": {"watermark": saved}}
     E.check_phase3_unchanged(meta, Config(watermark=wm), tmp_path)
     with pytest.raises(MnerfError, match="phase 3"):
-        E.check_phase3_unchanged(meta, Config(watermark=dataclasses.replace(wm, phase3_lambda_clean=3.0)),
+        E.check_phase3_unchanged(meta, Config(watermark=dataclasses.replace(wm, phase3=dataclasses.replace(wm.phase3, lambda_clean=3.0))),
                                  tmp_path)  # fmt: skip
 
 
 def test_the_refit_schedule_warms_up_then_decays_to_zero() -> None:
-    schedule = decoder_refit.refit_schedule(WatermarkConfig(phase3_steps=1000, phase3_lr=1e-3))
+    schedule = decoder_refit.refit_schedule(wm_config(phase3_steps=1000, phase3_lr=1e-3))
     assert float(schedule(0)) == 0.0
     assert float(schedule(100)) == pytest.approx(1e-3)
     assert float(schedule(50)) == pytest.approx(5e-4)
@@ -190,7 +190,7 @@ def test_the_refit_schedule_warms_up_then_decays_to_zero() -> None:
 def test_the_refit_rate_is_optaxs_warmup_cosine_schedule_of_its_length(total: int, where: float) -> None:
     # The rate takes its schedule's length as data (so phase 3 can be sized to the minutes left); at any
     # length it is the schedule phase 3 had as optax's warmup_cosine_decay_schedule.
-    cfg = WatermarkConfig(phase3_lr=1e-3)
+    cfg = wm_config(phase3_lr=1e-3)
     step = int(where * total)
     reference = optax.warmup_cosine_decay_schedule(0.0, 1e-3, max(total // 10, 1), total)
     expected = pytest.approx(float(reference(step)), abs=2e-9)
@@ -202,7 +202,7 @@ def test_phase_three_sizes_its_schedule_to_the_minutes_left() -> None:
     # With no time left after the timed steps, the schedule ends at the next step (the rate decayed to 0 on
     # it); with all the time it needs, it is the configured schedule, step for step the unbudgeted refit.
     data, variables = _two_class_set()
-    cfg = WatermarkConfig(phase3_steps=60, phase3_batch=4, augment_prob=0.0, seed=2)
+    cfg = wm_config(phase3_steps=60, phase3_batch=4, augment_prob=0.0, seed=2)
     plain, plain_metrics = decoder_refit.refit_decoder(cfg, variables, data)
     roomy, roomy_metrics = decoder_refit.refit_decoder(cfg, variables, data, seconds_left=lambda: 1e9)
     assert plain_metrics["scheduled"] == roomy_metrics["scheduled"] == roomy_metrics["steps"] == 60
@@ -210,11 +210,11 @@ def test_phase_three_sizes_its_schedule_to_the_minutes_left() -> None:
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     _, short = decoder_refit.refit_decoder(cfg, variables, data, seconds_left=lambda: 0.0)
     assert short["scheduled"] == short["steps"] == decoder_refit.SIZING_STEPS + 2
-    assert float(decoder_refit.refit_rate(cfg, short["steps"] - 1, short["scheduled"])) < 0.05 * cfg.phase3_lr
+    assert float(decoder_refit.refit_rate(cfg, short["steps"] - 1, short["scheduled"])) < 0.05 * cfg.phase3.lr
 
 
 def test_phase_three_follows_the_fields_schedule_and_the_budget_keeps_room_for_it() -> None:
-    cfg = WatermarkConfig(phase1_steps=2, phase2_steps=3, phase3_steps=4)
+    cfg = wm_config(phase1_steps=2, phase2_steps=3, phase3_steps=4)
     assert [phase_of(s, cfg) for s in range(7)] == [1, 1, 2, 2, 2, 3, 3]
     clock = time_budget.BudgetClock(budget_s=100.0, started=0.0, kept_s=30.0)
     clock.record_step(1.0)
@@ -224,13 +224,11 @@ def test_phase_three_follows_the_fields_schedule_and_the_budget_keeps_room_for_i
 
 
 def test_phase_three_settings_are_checked() -> None:
-    from mnerf_jax.watermark.model import WatermarkError, check_config
-
     for bad in ({"phase3_steps": -1}, {"phase3_views": -2}, {"phase3_batch": 0}, {"phase3_lr": 0.0},
                 {"phase3_reserve_min": -1.0}, {"phase3_lambda_clean": -0.1}, {"phase3_view_density": "cube"},
                 {"phase3_elevation_margin": -1.0}, {"phase3_elevation_margin": 91.0}):  # fmt: skip
-        with pytest.raises(WatermarkError, match="phase3"):
-            check_config(WatermarkConfig(**bad))
+        with pytest.raises(MnerfError, match="phase3"):
+            wm_config(**bad)
 
 
 def test_tiny_embed_with_phase_three_and_its_resume(tiny: TinyRuns) -> None:
@@ -241,8 +239,8 @@ def test_tiny_embed_with_phase_three_and_its_resume(tiny: TinyRuns) -> None:
     run = root / "p3"
     shutil.copytree(tiny.wm, run)
     before = wm_run.load_watermarked_run(run)
-    phase3 = [*tiny.embed_overrides, "watermark.phase3_steps=6", "watermark.phase3_views=2",
-              "watermark.phase3_batch=4"]  # fmt: skip
+    phase3 = [*tiny.embed_overrides, "watermark.phase3.steps=6", "watermark.phase3.views=2",
+              "watermark.phase3.batch=4"]  # fmt: skip
     args = dict(decoder_path=tiny.decoder, progress=False, resume=True)
     result = E.embed(tiny.fit, run, 2, 8, overrides=phase3, **args)
     assert result.steps == before.step + 6
@@ -261,7 +259,7 @@ def test_tiny_embed_with_phase_three_and_its_resume(tiny: TinyRuns) -> None:
     assert again.steps == after.step
     assert wm_run.load_watermarked_run(run).extras["decoder"].fingerprint == dec_after.fingerprint
     with pytest.raises(MnerfError, match="phase 3"):
-        E.embed(tiny.fit, run, 2, 8, overrides=[*phase3, "watermark.phase3_steps=7"], **args)
+        E.embed(tiny.fit, run, 2, 8, overrides=[*phase3, "watermark.phase3.steps=7"], **args)
 
 
 def test_a_field_the_time_budget_ends_still_gets_phase_three(
@@ -273,9 +271,9 @@ def test_a_field_the_time_budget_ends_still_gets_phase_three(
     two_steps = lambda self, now: len(self.step_seconds) < 2  # noqa: E731
     monkeypatch.setattr(time_budget.BudgetClock, "room_for_a_step", two_steps)
     run = tiny.root / "p3_cut"
-    overrides = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=3",
-                 "watermark.phase3_steps=4", "watermark.phase3_views=2", "watermark.phase3_batch=4",
-                 "watermark.time_budget_min=30", "watermark.phase3_reserve_min=1"]  # fmt: skip
+    overrides = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=2", "watermark.schedule.phase2_steps=3",
+                 "watermark.phase3.steps=4", "watermark.phase3.views=2", "watermark.phase3.batch=4",
+                 "watermark.time_budget.minutes=30", "watermark.phase3.reserve_min=1"]  # fmt: skip
     args = dict(decoder_path=tiny.decoder, progress=False)
     result = E.embed(tiny.fit, run, 2, 8, overrides=overrides, **args)
     assert result.stopped_by_budget
@@ -283,7 +281,7 @@ def test_a_field_the_time_budget_ends_still_gets_phase_three(
     assert result.steps == 5 + 4 and wm_run.load_watermarked_run(run).step == 9
     assert json.loads((run / "embed.json").read_text())["phase"] == 3
     field = E.embed(tiny.fit, tiny.root / "p3_cut_field", 2, 8, stop_at=2,
-                    overrides=[*overrides, "watermark.phase3_steps=0"], **args)  # fmt: skip
+                    overrides=[*overrides, "watermark.phase3.steps=0"], **args)  # fmt: skip
     refit = wm_run.load_watermarked_run(run)
     for x, y in zip(jax.tree.leaves(field.state.params), jax.tree.leaves(refit.params), strict=True):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-6, atol=1e-7)
@@ -311,7 +309,7 @@ def test_novel_views_on_a_forward_facing_scene_are_refused_before_anything_is_wr
 
     monkeypatch.setattr(runs.LoadedRun, "load_scene", forward_facing)
     out = tiny.root / "p3_ndc"
-    overrides = [*tiny.embed_overrides, "watermark.phase3_steps=2", "watermark.phase3_views=2"]
+    overrides = [*tiny.embed_overrides, "watermark.phase3.steps=2", "watermark.phase3.views=2"]
     with pytest.raises(MnerfError, match="forward-facing"):
         E.embed(tiny.fit, out, 2, 8, overrides=overrides, decoder_path=tiny.decoder, progress=False)
     assert not out.exists()

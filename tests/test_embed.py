@@ -16,6 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mnerf_jax.core import rundir
+from mnerf_jax.core.config import watermark_from_flat as wm_config
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.reader import decoder_io, dwt
 from mnerf_jax.tensorf import raymarch
@@ -214,7 +215,6 @@ def _small_watermarked_scene(cfg, num_ids: int, h: int, w: int) -> tuple:
     ``h × w`` pinhole camera at z = 4."""
     from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.tensorf import field
-    from mnerf_jax.watermark import model as watermark
 
     model = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(3, 3, 3), app_features=6, mlp_width=16,
                         density_shift=0.0)  # fmt: skip
@@ -239,13 +239,11 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
     # Watson, and the phase-2 patch loss (L1 + TV + SSIM) on overlapping 11-px patches of a 13×12 image.
     # (The single-patch path, one render on the graph, is test_deferred_gradient_equals_direct_gradient
     # [8-8-8]; a second real-renderer case for it cost 15 s of compiling and tested no other code.)
-    from mnerf_jax.core.config import WatermarkConfig
     from mnerf_jax.imaging import losses
     from mnerf_jax.reader import decoder
     from mnerf_jax.tensorf import render
-    from mnerf_jax.watermark import model as watermark
 
-    cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
+    cfg = wm_config(wm_ranks=(2, 2, 2))
     model, params, geometry, rays, targets = _small_watermarked_scene(cfg, 3, h, w)
     fns = watermark.field_fns(model, cfg)
     dec = decoder.init_decoder(jax.random.PRNGKey(3), 8)
@@ -286,9 +284,9 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
 
 
 def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_message() -> None:
-    # watermark.lambda_clean adds λ·BCE(decoder(ground truth), ½) in phase 2: a constant in the image (the
+    # watermark.losses.lambda_clean adds λ·BCE(decoder(ground truth), ½) in phase 2: a constant in the image (the
     # field's gradient is unchanged) that trains the decoder to read nothing from unwatermarked images.
-    from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.imaging import losses
     from mnerf_jax.reader import decoder
 
@@ -298,7 +296,7 @@ def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_messag
     message = jnp.array([1, 0, 1, 1, 0, 0, 1, 0], jnp.float32)
 
     def loss_fn(lambda_clean: float, phase: int = 2):
-        cfg = WatermarkConfig(augment_per_step=0, lambda_clean=lambda_clean, lambda_key=0.0)
+        cfg = wm_config(augment_per_step=0, lambda_clean=lambda_clean, lambda_key=0.0)
         spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
                           width=24, density_budget=1, colour_budget=1)  # fmt: skip
         return S.make_image_loss(spec, jax.random.PRNGKey(3), message, target, dec)
@@ -404,29 +402,29 @@ def test_embedding_config_records_the_schedule_it_runs(tiny: TinyRuns) -> None:
     source = wm_run.load_run(tiny.fit)
     wm = E.resolve_config(source, None, [], 16, 16).watermark
     # Both phases from the procedural preset (100 + 1,600); -1 is by the number of IDs.
-    assert (wm.phase1_steps, wm.phase2_steps) == (100, 1600)
-    wm = E.resolve_config(source, None, ["watermark.phase2_steps=-1"], 16, 16).watermark
-    assert (wm.phase1_steps, wm.phase2_steps) == (100, 3200)
-    sets = ["watermark.phase1_steps=-1", "watermark.phase2_steps=7"]
+    assert (wm.schedule.phase1_steps, wm.schedule.phase2_steps) == (100, 1600)
+    wm = E.resolve_config(source, None, ["watermark.schedule.phase2_steps=-1"], 16, 16).watermark
+    assert (wm.schedule.phase1_steps, wm.schedule.phase2_steps) == (100, 3200)
+    sets = ["watermark.schedule.phase1_steps=-1", "watermark.schedule.phase2_steps=7"]
     wm = E.resolve_config(source, None, sets, 2, 8).watermark
-    assert (wm.phase1_steps, wm.phase2_steps) == (200, 7)
+    assert (wm.schedule.phase1_steps, wm.schedule.phase2_steps) == (200, 7)
     with pytest.raises(MnerfError, match="must be ≥ 1"):
-        E.resolve_config(source, None, ["watermark.phase1_steps=0", "watermark.phase2_steps=0"], 2, 8)
+        E.resolve_config(source, None, ["watermark.schedule.phase1_steps=0", "watermark.schedule.phase2_steps=0"], 2, 8)
     with pytest.raises(MnerfError, match="read_window"):
-        E.resolve_config(source, None, ["watermark.read_window=1.5"], 2, 8)
-    for bad in (["watermark.read_jitter=-1", "watermark.read_window=0.7"], ["watermark.read_jitter=1"]):
+        E.resolve_config(source, None, ["watermark.reading.window=1.5"], 2, 8)
+    for bad in (["watermark.reading.jitter=-1", "watermark.reading.window=0.7"], ["watermark.reading.jitter=1"]):
         with pytest.raises(MnerfError, match="read_jitter"):
             E.resolve_config(source, None, bad, 2, 8)
 
 
 def test_resume_continues_exactly(tiny: TinyRuns) -> None:
     # 3 steps, stop, resume to 5  ==  5 steps in one go, across the phase boundary (phase 2 with its random
-    # augmentations). The decoder reads a read window (watermark.read_window), which the run's decoder file
+    # augmentations). The decoder reads a read window (watermark.reading.window), which the run's decoder file
     # records; this costs the steps' compilation (the tiny run reads whole images).
     root = tiny.root
-    overrides = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=78",
-                 "watermark.read_window=0.75", "watermark.read_background=-1",
-                 "watermark.read_jitter=1"]  # fmt: skip
+    overrides = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=2", "watermark.schedule.phase2_steps=78",
+                 "watermark.reading.window=0.75", "watermark.reading.background=-1",
+                 "watermark.reading.jitter=1"]  # fmt: skip
     args = dict(overrides=overrides, decoder_path=tiny.decoder, progress=False)
     E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=3, **args)
     with pytest.raises(MnerfError, match="--resume"):
@@ -444,22 +442,22 @@ def test_resume_continues_exactly(tiny: TinyRuns) -> None:
         (root / "r_once" / "keys.json").read_text())["messages"]
     meta = decoder_io.load_decoder(root / "r_split" / "decoder.npz").metadata
     assert (meta["read_window"], meta["read_background"], meta["read_jitter"]) == (0.75, -1.0, 1)
-    assert a.config.watermark.read_window == 0.75
+    assert a.config.watermark.reading.window == 0.75
 
 
 def test_a_time_budget_ends_the_run_early_as_a_prefix_of_the_full_one(tiny: TinyRuns) -> None:
     # A budget far below one step's cost lets the first step run and stops before the second (saved there);
     # the schedule is not resized, so resuming without a budget gives exactly the unbudgeted run.
     root = tiny.root
-    schedule = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=3"]
+    schedule = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=2", "watermark.schedule.phase2_steps=3"]
     args = dict(decoder_path=tiny.decoder, progress=False)
-    tiny_budget = [*schedule, "watermark.time_budget_min=0.001"]
+    tiny_budget = [*schedule, "watermark.time_budget.minutes=0.001"]
     stopped = E.embed(tiny.fit, root / "b_split", 2, 8, overrides=tiny_budget, **args)
     assert stopped.stopped_by_budget and stopped.steps == 1
     assert json.loads((root / "b_split" / "embed.json").read_text())["steps_done"] == 1
     resumed = E.embed(tiny.fit, root / "b_split", 2, 8, resume=True, overrides=schedule, **args)
     assert resumed.steps == 5 and not resumed.stopped_by_budget
-    roomy = E.embed(tiny.fit, root / "b_roomy", 2, 8, overrides=[*schedule, "watermark.time_budget_min=30"],
+    roomy = E.embed(tiny.fit, root / "b_roomy", 2, 8, overrides=[*schedule, "watermark.time_budget.minutes=30"],
                     **args)  # fmt: skip
     assert roomy.steps == 5 and not roomy.stopped_by_budget
     E.embed(tiny.fit, root / "b_plain", 2, 8, overrides=schedule, **args)
@@ -469,47 +467,8 @@ def test_a_time_budget_ends_the_run_early_as_a_prefix_of_the_full_one(tiny: Tiny
                        strict=True):  # fmt: skip
         np.testing.assert_allclose(np.asarray(x), np.asarray(z), rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(np.asarray(y), np.asarray(z), rtol=1e-5, atol=1e-6)
-    with pytest.raises(MnerfError, match="time_budget_min must be ≥ 0"):
-        E.embed(tiny.fit, root / "b_bad", 2, 8, overrides=[*schedule, "watermark.time_budget_min=-1"], **args)
-
-
-def test_the_budget_sizes_the_fields_schedule_to_the_time_left() -> None:
-    # 100 s budget, 30 s kept for phase 3, 45 s reserve, 5 s checkpoints every 10 steps, 1 s steps: at 10 s,
-    # 10 s of field time are left, 1.5 s a step, 97 % of it: 6 more steps. Never longer than the schedule,
-    # never shorter than the next step.
-    from mnerf_jax.watermark import time_budget as B
-
-    clock = B.BudgetClock(budget_s=100.0, started=0.0, kept_s=30.0)
-    assert B.sized_field_steps(clock, 10.0, 10, 100, 10) == 100  # nothing timed yet
-    for _ in range(5):
-        clock.record_step(1.0)
-    assert B.sized_field_steps(clock, 10.0, 10, 100, 10) == 16
-    assert B.sized_field_steps(clock, 10.0, 10, 12, 10) == 12
-    assert B.sized_field_steps(clock, 90.0, 10, 100, 10) == 11
-
-
-def test_a_budget_sized_field_records_its_schedule_and_resumes_it(
-    tiny: TinyRuns, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    # With watermark.budget_sizes_field the loop asks, after FIELD_SIZING_STEPS timed steps, how many of the
-    # field's steps the budget holds (here: 14 of 22) and ends the schedule there: the run's config.json and
-    # checkpoints record 2 + 12 steps, and --resume under the preset's longer schedule finds it finished.
-    from mnerf_jax.watermark import time_budget as B
-
-    monkeypatch.setattr(B, "sized_field_steps", lambda clock, now, step, total, every: 14)
-    overrides = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=20",
-                 "watermark.time_budget_min=30", "watermark.budget_sizes_field=true"]  # fmt: skip
-    args = dict(decoder_path=tiny.decoder, progress=False)
-    run = tiny.root / "sized"
-    result = E.embed(tiny.fit, run, 2, 8, overrides=overrides, **args)
-    assert result.steps == 14 and not result.stopped_by_budget
-    recorded = json.loads((run / "config.json").read_text())["watermark"]
-    assert (recorded["phase1_steps"], recorded["phase2_steps"]) == (2, 12)
-    assert wm_run.load_watermarked_run(run).step == 14
-    again = E.embed(tiny.fit, run, 2, 8, overrides=overrides, resume=True, **args)
-    assert again.steps == 14
-    with pytest.raises(MnerfError, match="incompatible"):  # unsized, the preset's 22 steps are another run
-        E.embed(tiny.fit, run, 2, 8, overrides=overrides[:-1], resume=True, **args)
+    with pytest.raises(MnerfError, match="time_budget.minutes must be ≥ 0"):
+        E.embed(tiny.fit, root / "b_bad", 2, 8, overrides=[*schedule, "watermark.time_budget.minutes=-1"], **args)
 
 
 def test_recorded_watermark_settings_older_than_todays_are_named(
@@ -521,19 +480,19 @@ def test_recorded_watermark_settings_older_than_todays_are_named(
     old = tmp_path / "old_fit"
     shutil.copytree(tiny.fit, old)
     recorded = json.loads((old / "config.json").read_text())
-    recorded["watermark"]["lr_decoder"] = 1e-4
+    recorded["watermark"]["optim"]["lr_decoder"] = 1e-4
     (old / "config.json").write_text(json.dumps(recorded))
-    assert E.watermark_defaults_drift(old) == ["lr_decoder 0.0001 (today 0.001)"]
-    assert E.watermark_defaults_drift(old, ["watermark.lr_decoder=0.002"]) == []  # --set: neither value used
+    assert E.watermark_defaults_drift(old) == ["optim.lr_decoder 0.0001 (today 0.001)"]
+    assert E.watermark_defaults_drift(old, ["watermark.optim.lr_decoder=0.002"]) == []  # --set: neither value used
     assert E.watermark_defaults_drift(tmp_path / "missing") == []  # embed itself says what is wrong
     base = ["embed", "--num-ids", "2", "--bits", "8", "--decoder", tiny.decoder, "--steps", "0", "--quiet"]
     code, _, err = mnerf(*base, "--from", old, "--out", tmp_path / "wm")
     assert code == 0 and "lr_decoder 0.0001 (today 0.001)" in err and "--config PRESET" in err
     assert json.loads((tmp_path / "wm" / "config.json").read_text())["watermark"]["lr_decoder"] == 1e-4
-    code, _, err = mnerf(*base, "--from", old, "--out", tmp_path / "w2", "--set", "watermark.lr_decoder=2e-3")
+    code, _, err = mnerf(*base, "--from", old, "--out", tmp_path / "w2", "--set", "watermark.optim.lr_decoder=2e-3")
     assert code == 0 and "note:" not in err, err
     # --config takes today's section (resolve_config is what the command calls with it).
-    assert E.resolve_config(E.load_source(old), "procedural", [], 2, 8).watermark.lr_decoder == 1e-3
+    assert E.resolve_config(E.load_source(old), "procedural", [], 2, 8).watermark.optim.lr_decoder == 1e-3
 
 
 # ------------------------------------------------------------------------------------------- bad input
@@ -553,15 +512,15 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, m
         ([*base, "--out", str(tmp_path / "o6"), "--num-ids", "2", "--bits", "8", "--set",
           "model.mlp_width=64"], "may not change model"),
         ([*base, "--out", str(tmp_path / "o7"), "--num-ids", "2", "--bits", "8", "--set",
-          "watermark.augment_strength=extreme"], "augment_strength"),
+          "watermark.augment.strength=extreme"], "augment_strength"),
         ([*base, "--out", str(tmp_path / "o8"), "--num-ids", "2", "--bits", "8", "--set",
-          "watermark.augment_names=jpeg,crop"], "unknown augmentation 'crop'"),
+          "watermark.augment.names=jpeg,crop"], "unknown augmentation 'crop'"),
         ([*base, "--out", str(tmp_path / "o9"), "--num-ids", "2", "--bits", "8", "--set",
-          "watermark.augment_names=jpeg"], "cannot draw 2 distinct augmentations from 1"),
+          "watermark.augment.names=jpeg"], "cannot draw 2 distinct augmentations from 1"),
         ([*base, "--out", str(tmp_path / "o10"), "--num-ids", "2", "--bits", "8", "--set",
-          "watermark.ids_per_step=3"], "ids_per_step must be in [0, 2]"),
+          "watermark.schedule.ids_per_step=3"], "ids_per_step must be in [0, 2]"),
         ([*base, "--out", str(tmp_path / "o11"), "--num-ids", "2", "--bits", "8", "--set",
-          "watermark.fidelity_psnr=-3"], "fidelity_psnr"),
+          "watermark.fidelity.psnr=-3"], "fidelity_psnr"),
         ([*base, "--out", str(tiny.wm), "--num-ids", "2", "--bits", "8"], "--resume"),
     ]  # fmt: skip
     for argv, message in cases:
@@ -607,12 +566,11 @@ def test_non_rgb_images_are_refused() -> None:
 
 
 def _wm_params(variant: str) -> dict:
-    from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.tensorf import field
-    from mnerf_jax.watermark import model as watermark
 
     model = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(2, 2, 2), app_features=4, mlp_width=8)
-    cfg = WatermarkConfig(variant=variant, wm_ranks=(2, 2, 2), num_ids=1 if variant == "waterf" else 3)
+    cfg = wm_config(variant=variant, wm_ranks=(2, 2, 2), num_ids=1 if variant == "waterf" else 3)
     base = field.init_field(jax.random.PRNGKey(0), model, (5, 5, 5))
     return watermark.add_watermark(jax.random.PRNGKey(1), base, cfg, cfg.num_ids), cfg
 
@@ -639,9 +597,9 @@ def test_optimizer_groups_and_learning_rates(variant: str) -> None:
     tx = S.make_optimizer(cfg)
     grads = jax.tree.map(jnp.ones_like, tree)
     updates, _ = tx.update(grads, tx.init(tree), tree)
-    lr = {"grid": cfg.lr_grid, "network": cfg.lr_network, "embedding": cfg.lr_embedding,
-          "decoder": cfg.lr_decoder, "frozen": 0.0, "source_grid": cfg.lr_grid * cfg.lr_source_scale,
-          "source_network": cfg.lr_network * cfg.lr_source_scale}  # fmt: skip
+    lr = {"grid": cfg.optim.lr_grid, "network": cfg.optim.lr_network, "embedding": cfg.optim.lr_embedding,
+          "decoder": cfg.optim.lr_decoder, "frozen": 0.0, "source_grid": cfg.optim.lr_grid * cfg.optim.lr_source_scale,
+          "source_network": cfg.optim.lr_network * cfg.optim.lr_source_scale}  # fmt: skip
     pairs = zip(jax.tree_util.tree_leaves_with_path(updates), jax.tree.leaves(labels), strict=True)
     for (path, update), label in pairs:
         where = jax.tree_util.keystr(path)
@@ -659,7 +617,7 @@ def test_learning_rates_decay_exponentially() -> None:
     for _ in range(3):
         updates, state = tx.update(grads, state, tree)
         steps.append(float(updates["field"]["basis"][0, 0]))
-    ratio = cfg.lr_decay_ratio ** (1.0 / total)
+    ratio = cfg.optim.lr_decay_ratio ** (1.0 / total)
     assert steps[1] / steps[0] == pytest.approx(ratio, rel=1e-4)
     assert steps[2] / steps[1] == pytest.approx(ratio, rel=1e-4)
     # The decay's length may be traced (the compiled step takes it as an argument): the same schedule.
@@ -672,9 +630,8 @@ def test_learning_rates_decay_exponentially() -> None:
 
 
 def test_phases_and_step_choices_are_deterministic() -> None:
-    from mnerf_jax.core.config import WatermarkConfig
 
-    cfg = WatermarkConfig(phase1_steps=3, phase2_steps=2)
+    cfg = wm_config(phase1_steps=3, phase2_steps=2)
     assert [S.phase_of(s, cfg) for s in range(5)] == [1, 1, 1, 2, 2]
     picks = [EI.step_choice(0, s, 4, 10) for s in range(400)]
     assert picks == [EI.step_choice(0, s, 4, 10) for s in range(400)]
@@ -691,22 +648,21 @@ def test_phases_and_step_choices_are_deterministic() -> None:
 def test_step_config_keeps_what_the_compiled_step_reads() -> None:
     # Runs that differ only in host-side fields (the schedule, seeds, checkpoints, the time budget) share one
     # compiled step (the decay's length is its argument); every loss weight still tells steps apart.
-    from mnerf_jax.core.config import WatermarkConfig
 
-    base = WatermarkConfig(phase1_steps=40, phase2_steps=40)
-    same = WatermarkConfig(phase1_steps=2, phase2_steps=78, seed=5, key_seed=3, checkpoint_every=7,
+    base = wm_config(phase1_steps=40, phase2_steps=40)
+    same = wm_config(phase1_steps=2, phase2_steps=78, seed=5, key_seed=3, checkpoint_every=7,
                            time_budget_min=60.0)  # fmt: skip
     assert S.step_config(base) == S.step_config(same)
-    assert S.step_config(base) == S.step_config(WatermarkConfig(phase1_steps=40, phase2_steps=41))
-    heavier_rgb = WatermarkConfig(phase1_steps=40, phase2_steps=40, lambda_rgb=1.0)
+    assert S.step_config(base) == S.step_config(wm_config(phase1_steps=40, phase2_steps=41))
+    heavier_rgb = wm_config(phase1_steps=40, phase2_steps=40, lambda_rgb=1.0)
     assert S.step_config(base) != S.step_config(heavier_rgb)
-    fewer_attacks = WatermarkConfig(phase1_steps=40, phase2_steps=40, augment_names=("jpeg", "hue"))
-    assert S.step_config(fewer_attacks).augment_names == ("jpeg", "hue")
+    fewer_attacks = wm_config(phase1_steps=40, phase2_steps=40, augment_names=("jpeg", "hue"))
+    assert S.step_config(fewer_attacks).augment.names == ("jpeg", "hue")
 
 
 def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.MonkeyPatch) -> None:
-    # watermark.augment_names reaches the policy inside the phase-2 image loss (traced, not run).
-    from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+    # watermark.augment.names reaches the policy inside the phase-2 image loss (traced, not run).
+    from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.imaging import augment
     from mnerf_jax.reader import decoder
 
@@ -721,7 +677,7 @@ def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.M
     dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
     image = jnp.full((16, 16, 3), 0.5)
     for names, expect in (((), None), (("jpeg", "hue"), ("jpeg", "hue"))):
-        wm = WatermarkConfig(augment_names=names, lambda_key=0.0)
+        wm = wm_config(augment_names=names, lambda_key=0.0)
         spec = S.StepSpec(model=ModelConfig(), wm=wm, adam_b1=0.9, adam_b2=0.99, phase=2, height=16,
                           width=16, density_budget=1, colour_budget=1)  # fmt: skip
         loss = S.make_image_loss(spec, jax.random.PRNGKey(1), jnp.zeros(8), image, dec)
@@ -731,13 +687,12 @@ def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.M
 
 
 def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
-    # watermark.ids_per_step: one deferred step on K IDs' renders of a view equals the mean over the K IDs of
+    # watermark.schedule.ids_per_step: one deferred step on K IDs' renders of a view equals the mean over the K IDs of
     # the direct (full-graph) gradient of that ID's objective alone: the IDs share the render, not the loss.
-    from mnerf_jax.core.config import WatermarkConfig
     from mnerf_jax.reader import decoder
 
     # lambda_key = 0: the key cross-entropy depends on the set of IDs, so it is not a mean over them.
-    cfg = WatermarkConfig(wm_ranks=(2, 2, 2), augment_per_step=0, jitter=False, lambda_ssim=0.0,
+    cfg = wm_config(wm_ranks=(2, 2, 2), augment_per_step=0, jitter=False, lambda_ssim=0.0,
                           lambda_key=0.0)  # fmt: skip
     h, w = 10, 9
     model, params, geometry, rays, targets = _small_watermarked_scene(cfg, 4, h, w)
@@ -780,12 +735,10 @@ def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
 
 
 def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
-    # watermark.id_loss_power p: the renders' gradient is that of Σ_k w_k·BCE_k with w ∝ BCE^p held constant;
+    # watermark.losses.id_loss_power p: the renders' gradient is that of Σ_k w_k·BCE_k with w ∝ BCE^p held constant;
     # the decoder's gradient and the value stay the plain mean's. p = 0 is the plain mean throughout, and one
     # ID is its own BCE whatever p.
-    from mnerf_jax.core.config import WatermarkConfig
     from mnerf_jax.imaging import losses
-    from mnerf_jax.watermark import model as watermark
 
     renders = jax.random.uniform(jax.random.PRNGKey(0), (4, 3, 3, 3))
     dec = jax.random.normal(jax.random.PRNGKey(1), (27, 8)) * 0.1
@@ -804,7 +757,7 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
     uniform = np.full(4, 0.25)
     g_plain = jax.grad(weighted, argnums=(0, 1))(renders, dec, uniform)
     for power in (0.0, 1.0, 2.0):
-        cfg = WatermarkConfig(id_loss_power=power, lambda_key=0.0)
+        cfg = wm_config(id_loss_power=power, lambda_key=0.0)
         term, bce, key = S.message_loss(cfg, decode, renders, dec, message)
         np.testing.assert_allclose([term, bce], [per_id.mean()] * 2, rtol=1e-5)
         assert float(key) == 0.0  # lambda_key = 0: no key term
@@ -817,17 +770,16 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
             worst, best = int(np.argmax(per_id)), int(np.argmin(per_id))
             ratio = np.abs(np.asarray(g_r)).sum((1, 2, 3)) / np.abs(np.asarray(g_plain[0])).sum((1, 2, 3))
             assert ratio[worst] > 1.0 > ratio[best]
-    cfg = WatermarkConfig(id_loss_power=2.0, lambda_key=0.0)
+    cfg = wm_config(id_loss_power=2.0, lambda_key=0.0)
     one, _, _ = S.message_loss(cfg, decode, renders[:1], dec, message[:1])
     np.testing.assert_allclose(one, per_id[0], rtol=1e-5)
     with pytest.raises(MnerfError, match="id_loss_power"):
-        watermark.check_config(WatermarkConfig(id_loss_power=-1.0))
+        wm_config(id_loss_power=-1.0)
 
 
 def test_key_term_is_the_key_cross_entropy_with_its_gradient_to_renders_and_decoder() -> None:
-    # watermark.lambda_key: the same logits as the BCE, the gradient of key_cross_entropy(decode(r, p)) to
+    # watermark.losses.lambda_key: the same logits as the BCE, the gradient of key_cross_entropy(decode(r, p)) to
     # both sides, with the plain mean and with id_loss_power's two decoder passes alike.
-    from mnerf_jax.core.config import WatermarkConfig
     from mnerf_jax.imaging import losses
 
     renders = jax.random.uniform(jax.random.PRNGKey(0), (3, 3, 3, 3))
@@ -843,7 +795,7 @@ def test_key_term_is_the_key_cross_entropy_with_its_gradient_to_renders_and_deco
 
     g_direct = jax.grad(direct, argnums=(0, 1))(renders, dec)
     for power in (0.0, 1.0):
-        cfg = WatermarkConfig(id_loss_power=power, lambda_key=0.5)
+        cfg = wm_config(id_loss_power=power, lambda_key=0.5)
         key = S.message_loss(cfg, decode, renders, dec, keys[ids], keys, ids)[2]
         np.testing.assert_allclose(key, direct(renders, dec), rtol=1e-5)
         g = jax.grad(lambda r, p, c=cfg: S.message_loss(c, decode, r, p, keys[ids], keys, ids)[2],
@@ -851,17 +803,17 @@ def test_key_term_is_the_key_cross_entropy_with_its_gradient_to_renders_and_deco
         for got, want in zip(g, g_direct, strict=True):
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-8)
     with pytest.raises(ValueError, match="lambda_key"):
-        S.message_loss(WatermarkConfig(lambda_key=0.5), decode, renders, dec, keys[ids])
+        S.message_loss(wm_config(lambda_key=0.5), decode, renders, dec, keys[ids])
     with pytest.raises(MnerfError, match="lambda_key"):
-        watermark.check_config(WatermarkConfig(lambda_key=-1.0))
+        wm_config(lambda_key=-1.0)
 
 
 # ------------------------------------------------------------------------------------ quality budget
 
 
 def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
-    # watermark.fidelity_psnr: + λ·mean_k relu(MSE(render_k, clean) / 10^(−psnr/10) − 1): zero inside.
-    from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+    # watermark.fidelity.psnr: + λ·mean_k relu(MSE(render_k, clean) / 10^(−psnr/10) − 1): zero inside.
+    from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.reader import decoder
 
     dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
@@ -872,7 +824,7 @@ def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
     messages = jnp.array([[1, 0, 1, 1, 0, 0, 1, 0], [0, 0, 1, 0, 1, 1, 1, 0]], jnp.float32)
 
     def loss_fn(psnr: float, phase: int, ref: jax.Array | None):
-        cfg = WatermarkConfig(augment_per_step=0, fidelity_psnr=psnr, lambda_fidelity=4.0, lambda_key=0.0)
+        cfg = wm_config(augment_per_step=0, fidelity_psnr=psnr, lambda_fidelity=4.0, lambda_key=0.0)
         spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
                           width=24, density_budget=1, colour_budget=1)  # fmt: skip
         return jax.jit(S.make_image_loss(spec, jax.random.PRNGKey(4), messages, target, dec, None, ref))
@@ -903,13 +855,12 @@ def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
 def test_fidelity_budget_ramps_linearly_in_db_over_the_schedule(
     start: float, rise: float, first: float, width: float, total: int
 ) -> None:
-    # watermark.fidelity_psnr_start / fidelity_ramp: the start budget until the ramp, linear in dB across it,
+    # watermark.fidelity.psnr_start / fidelity_ramp: the start budget until the ramp, linear in dB across it,
     # the final budget after; never outside [start, final] and never loosening as the steps go on.
-    from mnerf_jax.core.config import WatermarkConfig
 
     last = min(first + width, 1.0)
-    cfg = WatermarkConfig(fidelity_psnr=start + rise, fidelity_psnr_start=start, fidelity_ramp=(first, last))
-    watermark.check_config(cfg)
+    cfg = wm_config(fidelity_psnr=start + rise, fidelity_psnr_start=start, fidelity_ramp=(first, last))
+    cfg.check_ids()
     budgets = [S.fidelity_budget_db(cfg, step, total) for step in range(0, total + 1, max(total // 97, 1))]
     assert all(b1 <= b2 + 1e-9 for b1, b2 in zip(budgets, budgets[1:], strict=False))
     assert all(start - 1e-9 <= b <= start + rise + 1e-9 for b in budgets)
@@ -921,29 +872,28 @@ def test_fidelity_budget_ramps_linearly_in_db_over_the_schedule(
         middle = int(round((first + last) / 2 * total))
         expected = start + rise * (middle - first * total) / ((last - first) * total)
         assert abs(S.fidelity_budget_db(cfg, middle, total) - expected) < 1e-6
-    plain = WatermarkConfig(fidelity_psnr=start)  # no ramp: the one budget throughout
+    plain = wm_config(fidelity_psnr=start)  # no ramp: the one budget throughout
     assert {S.fidelity_budget_db(plain, step, total) for step in (0, total // 2, total)} == {start}
 
 
 def test_fidelity_ramp_is_checked() -> None:
-    from mnerf_jax.core.config import WatermarkConfig
 
     with pytest.raises(MnerfError, match="fidelity_psnr_start"):
-        watermark.check_config(WatermarkConfig(fidelity_psnr=30.0, fidelity_psnr_start=35.0))
+        wm_config(fidelity_psnr=30.0, fidelity_psnr_start=35.0)
     with pytest.raises(MnerfError, match="fidelity_psnr_start"):
-        watermark.check_config(WatermarkConfig(fidelity_psnr_start=20.0))  # no budget to tighten to
+        wm_config(fidelity_psnr_start=20.0)  # no budget to tighten to
     with pytest.raises(MnerfError, match="fidelity_ramp"):
-        watermark.check_config(WatermarkConfig(fidelity_psnr=30.0, fidelity_psnr_start=20.0,
-                                               fidelity_ramp=(0.8, 0.4)))  # fmt: skip
+        wm_config(fidelity_psnr=30.0, fidelity_psnr_start=20.0,
+                                               fidelity_ramp=(0.8, 0.4))  # fmt: skip
     with pytest.raises(MnerfError, match="fidelity_ramp"):
-        watermark.check_config(WatermarkConfig(fidelity_psnr=30.0, fidelity_psnr_start=20.0,
-                                               fidelity_ramp=(0.5, 1.5)))  # fmt: skip
+        wm_config(fidelity_psnr=30.0, fidelity_psnr_start=20.0,
+                                               fidelity_ramp=(0.5, 1.5))  # fmt: skip
 
 
 def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> None:
     # The ramp hands each step its MSE budget in the batch (no recompilation per value): a loss built with
     # fidelity_budget = the MSE of 35 dB equals one whose config says 35 dB, whatever the config says then.
-    from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+    from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.reader import decoder
 
     dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
@@ -952,7 +902,7 @@ def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> Non
     message = jnp.array([[1, 0, 1, 1, 0, 0, 1, 0]], jnp.float32)
 
     def loss(psnr: float, budget: jax.Array | None) -> jax.Array:
-        cfg = WatermarkConfig(augment_per_step=0, fidelity_psnr=psnr, lambda_key=0.0)
+        cfg = wm_config(augment_per_step=0, fidelity_psnr=psnr, lambda_key=0.0)
         spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=2, height=24,
                           width=24, density_budget=1, colour_budget=1)  # fmt: skip
         fn = S.make_image_loss(spec, jax.random.PRNGKey(4), message, target, dec, None, reference, None, None,
@@ -966,9 +916,9 @@ def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> Non
 def test_embedding_steps_receive_the_ramps_budget(tiny: TinyRuns) -> None:
     # The host loop hands step s the ramp's budget at s (the step reports it back as psnr_budget).
     root = tiny.root
-    overrides = [*tiny.embed_overrides, "watermark.phase1_steps=1", "watermark.phase2_steps=3",
-                 "watermark.fidelity_psnr=30", "watermark.fidelity_psnr_start=10",
-                 "watermark.fidelity_ramp=0.25,0.75"]  # fmt: skip
+    overrides = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=1", "watermark.schedule.phase2_steps=3",
+                 "watermark.fidelity.psnr=30", "watermark.fidelity.psnr_start=10",
+                 "watermark.fidelity.ramp=0.25,0.75"]  # fmt: skip
     seen: dict[int, float] = {}
     E.embed(tiny.fit, root / "ramp", 2, 8, overrides=overrides, decoder_path=tiny.decoder, progress=False,
             on_step=lambda step, metrics: seen.__setitem__(step, metrics["psnr_budget"]))  # fmt: skip
@@ -977,7 +927,7 @@ def test_embedding_steps_receive_the_ramps_budget(tiny: TinyRuns) -> None:
 
 
 def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
-    # watermark.clean_negative = "clean_model": phase 2's clean term decodes the clean model's render of the
+    # watermark.losses.clean_negative = "clean_model": phase 2's clean term decodes the clean model's render of the
     # view instead of the ground-truth view; the rest of the loss is unchanged.
     from mnerf_jax.core.config import ModelConfig, WatermarkConfig
     from mnerf_jax.reader import decoder
@@ -987,14 +937,14 @@ def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
     message = jnp.array([[1, 0, 1, 1, 0, 0, 1, 0]], jnp.float32)
 
     def loss(negative: str, target_image: jax.Array, ref: jax.Array | None, phase: int = 2) -> float:
-        cfg = WatermarkConfig(augment_per_step=0, lambda_clean=0.5, clean_negative=negative, lambda_key=0.0)
+        cfg = wm_config(augment_per_step=0, lambda_clean=0.5, clean_negative=negative, lambda_key=0.0)
         spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
                           width=24, density_budget=1, colour_budget=1)  # fmt: skip
         fn = S.make_image_loss(spec, jax.random.PRNGKey(4), message, target_image, dec, None, ref)
         return float(fn(image, dec["params"])[0])
 
-    assert S.uses_clean_renders(WatermarkConfig(clean_negative="clean_model"))
-    assert not S.uses_clean_renders(WatermarkConfig(clean_negative="clean_model", lambda_clean=0.0))
+    assert S.uses_clean_renders(wm_config(clean_negative="clean_model"))
+    assert not S.uses_clean_renders(wm_config(clean_negative="clean_model", lambda_clean=0.0))
     assert not S.uses_clean_renders(WatermarkConfig())
     np.testing.assert_allclose(loss("clean_model", target, reference), loss("ground_truth", reference, None),
                                rtol=1e-6)  # fmt: skip
@@ -1005,7 +955,7 @@ def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
     with pytest.raises(ValueError, match="clean model's render"):
         loss("clean_model", target, None)
     with pytest.raises(MnerfError, match="clean_negative"):
-        watermark.check_config(WatermarkConfig(clean_negative="photographs"))
+        wm_config(clean_negative="photographs")
 
 
 def test_clean_references_are_the_clean_models_renders_of_the_training_views(tiny: TinyRuns) -> None:

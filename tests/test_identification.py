@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mnerf_jax.core.config import watermark_from_flat as wm_config
 from mnerf_jax.reader import identification as V
 from mnerf_jax.reader import significance
 
@@ -192,10 +193,8 @@ def test_sign_flip_keeps_false_detections_below_the_threshold() -> None:
 
 
 def test_config_refuses_an_unknown_test() -> None:
-    from mnerf_jax.core.config import WatermarkConfig
     from mnerf_jax.core.errors import MnerfError
-    from mnerf_jax.watermark import model as watermark
 
-    watermark.check_config(WatermarkConfig(id_test="sign_flip"))
-    with pytest.raises(MnerfError, match="watermark.id_test must be one of binomial, sign_flip"):
-        watermark.check_config(WatermarkConfig(id_test="fisher"))
+    wm_config(id_test="sign_flip")
+    with pytest.raises(MnerfError, match="watermark.reading.id_test.*binomial, sign_flip"):
+        wm_config(id_test="fisher")

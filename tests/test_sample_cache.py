@@ -1,4 +1,4 @@
-"""The cached source (watermark.cache_source): cached renders equal the ray-marched ones, in value and in the
+"""The cached source (watermark.schedule.cache_source): cached renders equal the ray-marched ones, in value and in the
 watermark's gradient; a tiny embed with it leaves the fitted field as it was."""
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from mnerf_jax.core import xla_cpu
-from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+from mnerf_jax.core.config import ModelConfig
+from mnerf_jax.core.config import watermark_from_flat as wm_config
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.tensorf import field, raymarch, render
 from mnerf_jax.watermark import embed as E
@@ -25,7 +26,7 @@ if TYPE_CHECKING:
 
 MODEL = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(4, 4, 4), app_features=8, mlp_width=16)
 RES = (9, 8, 7)
-CFG = WatermarkConfig(wm_ranks=(2, 2, 2), cache_source=True, jitter=False)
+CFG = wm_config(wm_ranks=(2, 2, 2), cache_source=True, jitter=False)
 
 
 def _scene(white_bg: bool = True) -> tuple[dict, raymarch.Geometry, jax.Array, jax.Array]:
@@ -94,17 +95,17 @@ def test_the_cached_renders_gradient_is_the_watermarks_gradient_through_the_ray_
 
 
 def test_cache_source_needs_a_last_layer_film_variant_and_no_jitter() -> None:
-    W.check_config(CFG)
+    CFG.check_ids()
     with pytest.raises(MnerfError, match="jitter=false"):
-        W.check_config(dataclasses.replace(CFG, jitter=True))
+        dataclasses.replace(CFG, schedule=dataclasses.replace(CFG.schedule, jitter=True))
     for variant in ("early", "waterf_mod", "no_film"):
         with pytest.raises(MnerfError, match="cache_source"):
-            W.check_config(dataclasses.replace(CFG, variant=variant))
+            dataclasses.replace(CFG, variant=variant)
 
 
 def test_a_tiny_embed_with_a_cached_source_trains_only_the_watermark(tiny: TinyRuns) -> None:
-    overrides = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=3",
-                 "watermark.cache_source=true", "watermark.jitter=false"]  # fmt: skip
+    overrides = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=2", "watermark.schedule.phase2_steps=3",
+                 "watermark.schedule.cache_source=true", "watermark.schedule.jitter=false"]  # fmt: skip
     out = tiny.root / "cached"
     result = E.embed(tiny.fit, out, 2, 8, overrides=overrides, decoder_path=tiny.decoder, progress=False)
     assert result.steps == 5
@@ -138,6 +139,6 @@ def test_a_tiny_embed_with_a_cached_source_trains_only_the_watermark(tiny: TinyR
     again = E.embed(tiny.fit, out, 2, 8, resume=True, overrides=overrides, decoder_path=tiny.decoder,
                     progress=False)  # fmt: skip
     assert again.steps == 5
-    plain = [*tiny.embed_overrides, "watermark.phase1_steps=2", "watermark.phase2_steps=3"]  # ray-marched
+    plain = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=2", "watermark.schedule.phase2_steps=3"]  # ray-marched
     with pytest.raises(MnerfError, match="cache_source"):
         E.embed(tiny.fit, out, 2, 8, resume=True, overrides=plain, decoder_path=tiny.decoder, progress=False)

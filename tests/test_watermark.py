@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+from mnerf_jax.core.config import watermark_from_flat as wm_config
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.tensorf import alpha_mask, field, grids, raymarch, render
 from mnerf_jax.watermark import model as W
@@ -40,7 +41,7 @@ def _colour(params: dict, cfg: WatermarkConfig, index: int) -> np.ndarray:
 def _strong_film(variant: str) -> tuple[WatermarkConfig, dict]:
     """A small config of ``variant`` and params whose Mod acts like a trained one (FiLM starts near the
     identity, γ ≈ 1, β ≈ 0, by design)."""
-    cfg = WatermarkConfig(variant=variant, wm_ranks=(2, 2, 2), emb_dim=4, emb_hidden=8)
+    cfg = wm_config(variant=variant, wm_ranks=(2, 2, 2), emb_dim=4, emb_hidden=8)
     params = _params(cfg)
     if "mod" in params["wm"]:
         params["wm"]["mod"] = jax.tree.map(lambda a: 10.0 * a, params["wm"]["mod"])
@@ -58,7 +59,7 @@ def test_different_ids_give_different_colours_and_the_same_id_the_same(variant: 
 
 
 def test_waterf_has_no_id_and_refuses_several() -> None:
-    cfg = WatermarkConfig(variant="waterf")
+    cfg = wm_config(variant="waterf")
     params = _params(cfg, num_ids=1)
     assert params["wm"] == {} and "out_extra" not in params["mlp"] and "in_extra" not in params["mlp"]
     assert W.condition(params, 0, cfg) is None
@@ -71,7 +72,7 @@ def test_waterf_has_no_id_and_refuses_several() -> None:
 
 def test_fresh_watermark_renders_the_clean_field() -> None:
     # Small out_extra: the untrained watermarked model matches the TensoRF it starts from.
-    cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
+    cfg = wm_config(wm_ranks=(2, 2, 2))
     k_field, k_wm = jax.random.split(jax.random.PRNGKey(3))
     base = field.init_field(k_field, MODEL, RES)
     params = W.add_watermark(k_wm, base, cfg, 4)
@@ -108,7 +109,7 @@ def test_film_is_per_id_from_the_start() -> None:
     ],
 )
 def test_variant_structure(variant: str, where: str, width: int) -> None:
-    cfg = WatermarkConfig(variant=variant)
+    cfg = wm_config(variant=variant)
     params = _params(cfg)
     assert params["mlp"][where].shape[0] == width
     assert ("grid" in params["wm"]) == (variant in ("multinerf", "frozen_geometry", "no_film", "early"))
@@ -121,7 +122,7 @@ def test_variant_structure(variant: str, where: str, width: int) -> None:
 
 
 def test_every_watermark_part_gets_a_gradient() -> None:
-    cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
+    cfg = wm_config(wm_ranks=(2, 2, 2))
     params = _params(cfg)
     xyz, d = _points()
 
@@ -141,47 +142,25 @@ def test_every_watermark_part_gets_a_gradient() -> None:
 
 
 def test_unknown_variant_and_bad_ranks_are_refused() -> None:
-    with pytest.raises(MnerfError, match="unknown watermark variant"):
-        W.check_config(WatermarkConfig(variant="bogus"))
+    with pytest.raises(MnerfError, match="watermark.variant"):
+        wm_config(variant="bogus")
     with pytest.raises(MnerfError, match="wm_ranks"):
-        W.check_config(WatermarkConfig(wm_ranks=(0, 0, 0)))
-
-
-def test_every_id_keeps_a_gradient_through_emb_where_relu_loses_it() -> None:
-    # Emb sees a one-hot ID: with ReLU (the default), a hidden unit that is negative for an ID passes that ID
-    # no gradient again; the silu and tanh options have no dead zone. All units pushed negative here.
-    def grads(activation: str) -> np.ndarray:
-        cfg = WatermarkConfig(emb_activation=activation)
-        wm = _params(cfg)["wm"]
-        wm["emb"]["b0"] = wm["emb"]["b0"] - 5.0
-        g = jax.grad(lambda w: jnp.sum(W.film(w, W.embed_id(w, 1, 4, activation))[0] ** 2))(wm)
-        return np.asarray(g["emb"]["w0"])
-
-    assert np.all(grads("relu") == 0)
-    silu = grads("silu")
-    assert np.all(np.abs(silu[1]) > 0) and np.all(silu[[0, 2, 3]] == 0)  # only the drawn ID's row learns
-    assert np.all(np.abs(grads("tanh")[1]) > 0)
-    params = _params(WatermarkConfig())
-    relu, silu = (np.asarray(W.condition(params, 1, WatermarkConfig(emb_activation=a))["gamma"])
-                  for a in ("relu", "silu"))  # fmt: skip
-    assert np.abs(relu - silu).max() > 1e-4  # condition() follows the config
-    with pytest.raises(MnerfError, match="emb_activation"):
-        W.check_config(WatermarkConfig(emb_activation="softsign"))
+        wm_config(wm_ranks=(0, 0, 0))
 
 
 def test_the_automatic_schedule_grows_with_the_ids() -> None:
     from mnerf_jax.watermark import step as S
 
     # -1 (the default): 50 + 200 steps per ID, at least 4 IDs' worth; a value >= 0 is used as it is.
-    assert W.phase_steps(WatermarkConfig(num_ids=2)) == (200, 800)
-    assert W.phase_steps(WatermarkConfig(num_ids=4)) == (200, 800)
+    assert W.phase_steps(wm_config(num_ids=2)) == (200, 800)
+    assert W.phase_steps(wm_config(num_ids=4)) == (200, 800)
     assert W.phase_steps(WatermarkConfig(), num_ids=16) == (800, 3200)
-    assert W.phase_steps(WatermarkConfig(num_ids=16, phase1_steps=0)) == (0, 3200)
-    assert W.phase_steps(WatermarkConfig(num_ids=16, phase1_steps=3, phase2_steps=0)) == (3, 0)
-    cfg = WatermarkConfig(num_ids=8)
+    assert W.phase_steps(wm_config(num_ids=16, phase1_steps=0)) == (0, 3200)
+    assert W.phase_steps(wm_config(num_ids=16, phase1_steps=3, phase2_steps=0)) == (3, 0)
+    cfg = wm_config(num_ids=8)
     assert S.total_steps(cfg) == 2000 and S.phase_of(399, cfg) == 1 and S.phase_of(400, cfg) == 2
     with pytest.raises(MnerfError, match="phase1_steps"):
-        W.check_config(WatermarkConfig(phase2_steps=-2))
+        wm_config(phase2_steps=-2)
 
 
 def test_the_cpu_preset_moves_steps_from_phase_1_to_phase_2() -> None:
@@ -191,11 +170,11 @@ def test_the_cpu_preset_moves_steps_from_phase_1_to_phase_2() -> None:
     # a 100 + 2,600 step schedule ended by a 60-minute budget, the field's loss weighted towards the IDs
     # read worst, and the decoder reading a window on the object (the lego protocol on 2 cores).
     cfg = config.load_preset("embed_cpu").watermark
-    assert W.phase_steps(cfg, num_ids=16) == (100, 2600) and cfg.time_budget_min == 60
-    assert cfg.id_loss_power == 1.0 and cfg.read_window == 0.72 and cfg.read_background == 1.0
-    plain = dataclasses.replace(cfg, phase1_steps=-1, phase2_steps=-1, time_budget_min=0.0, id_loss_power=0.0,
-                                read_window=0.0)  # fmt: skip
-    assert plain == WatermarkConfig()
+    assert W.phase_steps(cfg, num_ids=16) == (100, 2600) and cfg.time_budget.minutes == 60
+    assert cfg.losses.id_loss_power == 1.0 and cfg.reading.window == 0.72 and cfg.reading.background == 1.0
+    plain = {**config.flat_items(cfg), "schedule.phase1_steps": -1, "schedule.phase2_steps": -1,
+             "time_budget.minutes": 0.0, "losses.id_loss_power": 0.0, "reading.window": 0.0}
+    assert plain == config.flat_items(WatermarkConfig())
 
 
 def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no_attacks_and_a_phase_3(
@@ -206,18 +185,19 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
 
     cfg = config.load_preset("embed_cpu_quality").watermark
     base = config.load_preset("embed_cpu").watermark
-    assert dataclasses.replace(
-        cfg, fidelity_psnr=0.0, fidelity_psnr_start=0.0, fidelity_ramp=(0.0, 0.0), augment_prob=0.75,
-        patch_size=64, phase2_steps=2600, phase3_steps=0, phase3_views=0, phase3_reserve_min=0.0,
-        phase3_batch=32, phase3_lambda_clean=0.3, read_jitter=0, phase3_view_density="angles",
-        phase3_elevation_margin=0.0, cache_source=False, jitter=True,
-    ) == base  # fmt: skip
-    assert cfg.augment_prob == 0.0
+    assert {
+        **config.flat_items(cfg), "fidelity.psnr": 0.0, "fidelity.psnr_start": 0.0, "fidelity.ramp": (0.0, 0.0),
+        "augment.prob": 0.75, "schedule.patch_size": 64, "schedule.phase2_steps": 2600, "phase3.steps": 0,
+        "phase3.views": 0, "phase3.reserve_min": 0.0, "phase3.batch": 32, "phase3.lambda_clean": 0.3,
+        "reading.jitter": 0, "phase3.view_density": "angles", "phase3.elevation_margin": 0.0,
+        "schedule.cache_source": False, "schedule.jitter": True,
+    } == config.flat_items(base)
+    assert cfg.augment.prob == 0.0
     # The fitted field frozen and its samples cached (sample_cache.py), which needs unjittered samples.
-    assert cfg.cache_source and not cfg.jitter
-    W.check_config(cfg, num_ids=16)
+    assert cfg.schedule.cache_source and not cfg.schedule.jitter
+    cfg.check_ids(16)
     # One patch covers a lego 1/8 view (100 px): the deferred path's single-render branch.
-    assert patch_layout(100, 100, cfg.patch_size).num_patches == 1
+    assert patch_layout(100, 100, cfg.schedule.patch_size).num_patches == 1
     # 20 dB until 35 % of the field's 2,700 steps, 41.5 dB from 60 % on.
     total = sum(W.phase_steps(cfg, num_ids=16))
     assert total == 2700
@@ -227,14 +207,14 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
     # Then the decoder alone: 8,000 steps of 16 renders on the training views and 200 novel views, its
     # negatives weighed 1, with 19 of the 60 minutes kept for it; the novel views spread over the sphere's
     # area 5° past the training cameras' elevations; renders are read over the 9 windows within a pixel.
-    phase3 = (cfg.phase3_steps, cfg.phase3_batch, cfg.phase3_views, cfg.phase3_lambda_clean,
-              cfg.phase3_reserve_min, cfg.time_budget_min, cfg.phase3_view_density,
-              cfg.phase3_elevation_margin)
-    assert phase3 == (8000, 16, 200, 1.0, 19, 60, "sphere", 5.0) and cfg.read_jitter == 1
+    phase3 = (cfg.phase3.steps, cfg.phase3.batch, cfg.phase3.views, cfg.phase3.lambda_clean,
+              cfg.phase3.reserve_min, cfg.time_budget.minutes, cfg.phase3.view_density,
+              cfg.phase3.elevation_margin)
+    assert phase3 == (8000, 16, 200, 1.0, 19, 60, "sphere", 5.0) and cfg.reading.jitter == 1
 
 
 def test_watermark_grid_follows_upsampling_and_shrinking() -> None:
-    params = _params(WatermarkConfig(wm_ranks=(2, 2, 2)))
+    params = _params(wm_config(wm_ranks=(2, 2, 2)))
     up = W.resample_watermark(params, (12, 10, 9))
     assert grids.vm_resolution(up["wm"]["grid"]) == (12, 10, 9)
     up["density"] = grids.upsample_vm(up["density"], (12, 10, 9))
@@ -253,7 +233,7 @@ def test_watermark_grid_follows_upsampling_and_shrinking() -> None:
 
 
 def test_field_fns_render_differs_by_id() -> None:
-    cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
+    cfg = wm_config(wm_ranks=(2, 2, 2))
     params = _params(cfg, extra_scale=2.0)
     # Dense density so that rays see colour.
     params["density"] = jax.tree.map(lambda a: a + 1.0, params["density"])
@@ -289,7 +269,7 @@ def test_several_ids_at_once_equal_each_id_alone(variant: str) -> None:
 def test_render_rays_with_several_ids_equals_one_render_per_id(colour_budget: int | None) -> None:
     # One geometry pass for K IDs: rgb [R, 3K] whose columns are the single-ID renders (background included),
     # through the dense path and the chunked colour buffer alike.
-    cfg = WatermarkConfig(wm_ranks=(2, 2, 2))
+    cfg = wm_config(wm_ranks=(2, 2, 2))
     params = _params(cfg, extra_scale=2.0)
     params["density"] = jax.tree.map(lambda a: a + 1.0, params["density"])
     fns = W.field_fns(MODEL, cfg)

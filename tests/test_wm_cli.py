@@ -210,7 +210,7 @@ def test_demo_resumes_its_fitted_run_and_writes_the_report(
     (out / "demo.json").write_text("{}")  # an earlier demo's folder
     # The step's plumbing, not the embedding's quality (tests/test_embed.py has that). The run recorded the
     # preset's [watermark] section: these --set items must still reach the embedding (1 step, not 1,000).
-    sets = [*TINY_FIT, *tiny.embed_overrides, "watermark.phase1_steps=1", "watermark.phase2_steps=0"]
+    sets = [*TINY_FIT, *tiny.embed_overrides, "watermark.schedule.phase1_steps=1", "watermark.schedule.phase2_steps=0"]
     code, stdout, err = mnerf("demo", "--out", out, *[a for s in sets for a in ("--set", s)], "--frames", "2",
                               "--quiet")  # fmt: skip
     assert code == 0, err

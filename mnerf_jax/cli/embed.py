@@ -21,7 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", default=None,
                         help="preset whose [watermark] section to use (default: the run's)")  # fmt: skip
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config field, e.g. --set watermark.phase2_steps=400 (repeatable)")
+                        help="override a config field, e.g. --set watermark.schedule.phase2_steps=400 (repeatable)")
     parser.add_argument("--decoder", type=Path, default=None, metavar="FILE",
                         help="decoder to start from (default: the shipped decoder for --bits); 'fresh': "
                              "a random-init decoder whitened on the scene's training images, trained in "
@@ -31,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--time-budget", type=float, default=None, metavar="MIN",
                         help="end within MIN minutes of wall time: stop before a step that would not fit "
                              "(the run so far is saved; --resume continues it; sets "
-                             "watermark.time_budget_min)")  # fmt: skip
+                             "watermark.time_budget.minutes)")  # fmt: skip
     parser.add_argument("--steps", type=int, default=None, metavar="K",
                         help="stop after K steps in all (a checkpoint is written; --resume continues)")
     parser.add_argument("--eval-views", type=int, default=-1, metavar="V",
@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
                   "--config PRESET or --set watermark.KEY=VALUE to change them.", file=sys.stderr)
     overrides = list(args.set)
     if args.time_budget is not None:
-        overrides.append(f"watermark.time_budget_min={args.time_budget}")
+        overrides.append(f"watermark.time_budget.minutes={args.time_budget}")
     result = embed.embed(
         args.source, args.out, args.num_ids, args.bits, preset=args.config, overrides=overrides,
         decoder_path=args.decoder, data_path=args.data, resume=args.resume, stop_at=args.steps,

@@ -34,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--read-jitter", type=int, default=None, metavar="R",
                         help="watermarked runs: average the decoder's logits over the read windows moved by "
-                             "up to R pixels (default: the run's watermark.read_jitter)")
+                             "up to R pixels (default: the run's watermark.reading.jitter)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

@@ -32,11 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--threshold", type=float, default=None, metavar="P",
                         help="with --run: claim an ID only when its Bonferroni-corrected p-value is below P "
-                             "(default: the run's watermark.id_threshold, 1e-3 unless set)")
+                             "(default: the run's watermark.reading.id_threshold, 1e-3 unless set)")
     parser.add_argument("--test", choices=("binomial", "sign_flip"), default=None,
                         help="with --run: the p-value that decides: binomial (matching bits) or sign_flip "
                              "(matching bits weighted by the decoder's confidence); both are printed "
-                             "(default: the run's watermark.id_test, binomial unless set)")
+                             "(default: the run's watermark.reading.id_test, binomial unless set)")
     parser.add_argument("--read-jitter", type=int, default=None, metavar="R",
                         help="average the decoder's logits over the read windows moved by up to R pixels "
                              "((2R + 1)² reads; default: as the run's decoder file records, 0 for others)")

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from mnerf_jax.core import rundir
+from mnerf_jax.watermark import run as wm_run
 
 NAME = "render"
 HELP = ("Render a fitted or watermarked run: the views of a split, or an orbit/spiral camera path with a GIF "
@@ -129,13 +130,8 @@ def load_for_render(run_dir: Path, wm_id: int | None = None) -> Any:
 
     MnerfError (nothing written) for an ID on a run without watermarks or outside ``[0, N)``.
     """
-
     loaded = wm_run.load_run(run_dir)
-    if wm_id is None:
-        return loaded
-    from mnerf_jax.watermark import run as wm_run
-
-    return wm_run.with_id(loaded, wm_id)
+    return loaded if wm_id is None else wm_run.with_id(loaded, wm_id)
 
 
 def run(args: argparse.Namespace) -> int:

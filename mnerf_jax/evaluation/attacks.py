@@ -120,8 +120,8 @@ def evaluate_attacks(
     names = augment.resolve_names(names or None, 1)
     keys, decoder = wm_run.load_keys_and_decoder(run_dir)
     saved = rundir.read_run_config(run_dir).watermark
-    threshold = float(saved.id_threshold)
-    test = significance.check_test(saved.id_test)
+    threshold = float(saved.reading.id_threshold)
+    test = significance.check_test(saved.reading.id_test)
     evaluation, renders = saved_renders(run_dir, split, views)
     messages = np.asarray(keys.messages, np.float32)
     if renders.shape[0] != messages.shape[0]:

@@ -40,14 +40,15 @@ def decode_renders(decoder: Any, wm: Any, images: np.ndarray, batch: int = 16) -
 
     images = np.asarray(images, np.float32)
     return np.asarray(extract.decode(decoder.variables, images, decoder.wavelet, batch,
-                                     *read_window.of_config(wm)))  # fmt: skip
+                                     *read_window.of_config(wm.reading)))  # fmt: skip
 
 
 def with_read_jitter(wm: Any, read_jitter: int | None) -> Any:
     """The watermark config ``wm`` read with ``read_jitter`` (None: as it is); MnerfError below 0."""
     if read_jitter is None:
         return wm
-    return dataclasses.replace(wm, read_jitter=read_window.check_jitter(read_jitter))
+    reading = dataclasses.replace(wm.reading, jitter=read_window.check_jitter(read_jitter))
+    return dataclasses.replace(wm, reading=reading)
 
 
 def _save_and_reload_png(path: Path, image: np.ndarray) -> np.ndarray:
@@ -92,14 +93,14 @@ def evaluate_watermarked_run(
     ``lpips_clean_model`` (vs the clean model's renders), ``clean_psnr`` (clean model vs ground truth),
     ``identification_accuracy`` (best-matching key by soft correlation is the rendered ID;
     ``identification_accuracy_hard``: by agreeing bits), ``verified_identification_accuracy`` (and its p-value
-    under ``test``, default the run's ``watermark.id_test``, passes ``threshold``; under each test:
+    under ``test``, default the run's ``watermark.reading.id_test``, passes ``threshold``; under each test:
     ``verified_identification_accuracy_by_test``), ``misidentification_rate`` (named as another ID;
     ``..._by_test``), ``clean_bit_accuracy``, ``clean_false_detection_rate``
     (``..._by_test``; and per ID, which keys the false detections claimed: ``clean_false_detection_ids [N]``),
     ``num_ids``, ``bits``, ``split``, ``views``, ``per_id`` and ``identification`` (confusion matrices).
     With ``keep_renders`` the returned dict (not the file) also holds ``_renders`` ``{ID: [V, H, W, 3]}``,
     ``_clean`` and ``_gt``. ``read_jitter``: read with this jitter instead of the run's
-    ``watermark.read_jitter`` (recorded as ``read_jitter``).
+    ``watermark.reading.jitter`` (recorded as ``read_jitter``).
     """
 
     run_dir = Path(run_dir)
@@ -107,8 +108,8 @@ def evaluate_watermarked_run(
     keys = run.extras["keys"]
     decoder = run.extras["decoder"]
     wm = with_read_jitter(run.config.watermark, read_jitter)
-    thr = float(wm.id_threshold if threshold is None else threshold)
-    test = significance.check_test(wm.id_test if test is None else test)
+    thr = float(wm.reading.id_threshold if threshold is None else threshold)
+    test = significance.check_test(wm.reading.id_test if test is None else test)
     scene_split = run.load_scene(data_path, splits=(split,)).split(split)
     indices = runs.view_indices(len(scene_split), max_views)
     names = [scene_split.names[i] for i in indices]
@@ -175,7 +176,7 @@ def evaluate_watermarked_run(
         "bits": keys.bits,
         "min_hamming": keys.min_hamming,
         "variant": wm.variant,
-        "read_jitter": wm.read_jitter,
+        "read_jitter": wm.reading.jitter,
         "step": run.step,
         "decoder_fingerprint": decoder.fingerprint,
         "bit_accuracy_mean": float(np.mean(accs)),
@@ -251,7 +252,7 @@ def identify_images(
     --run WMRUN IMAGE...``): one record per image with the bits, the best-matching ID, its bit accuracy,
     the p-values (binomial and sign-flip, each also Bonferroni-corrected) and the decision ``id`` (−1: no
     watermark, i.e. the corrected p-value of ``test`` is not below ``threshold``; defaults: the run's
-    ``watermark.id_test`` and ``watermark.id_threshold``). ``read_jitter``: as in
+    ``watermark.reading.id_test`` and ``watermark.reading.id_threshold``). ``read_jitter``: as in
     :func:`evaluate_watermarked_run`.
 
     Only the run's keys, decoder and config are read (not its field checkpoint).
@@ -259,10 +260,10 @@ def identify_images(
 
     keys, decoder = wm_run.load_keys_and_decoder(run_dir)
     saved = with_read_jitter(rundir.read_run_config(run_dir).watermark, read_jitter)
-    thr = float(saved.id_threshold if threshold is None else threshold)
-    test = significance.check_test(saved.id_test if test is None else test)
+    thr = float(saved.reading.id_threshold if threshold is None else threshold)
+    test = significance.check_test(saved.reading.id_test if test is None else test)
     logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, batch_size,
-                                  *read_window.of_config(saved))  # fmt: skip
+                                  *read_window.of_config(saved.reading))  # fmt: skip
     ident = identify_logits(logits, keys.messages, thr, test)
     return [
         {

@@ -39,7 +39,7 @@ SHIPPED_BITS = (16, 48)
 FORMAT = "mnerf-hidden-decoder"
 FORMAT_VERSION = 1
 _META_KEY = "__metadata__"
-ASSET_DIR = Path(__file__).resolve().parent / "assets" / "decoders"
+ASSET_DIR = Path(__file__).resolve().parents[1] / "assets" / "decoders"
 
 
 def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, np.ndarray]:

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.core.watermark_config import ReadingConfig
 
 # Foreground weight ramps from 0 to 1 as a pixel's largest channel difference from the background goes from
 # FOREGROUND_LOW to FOREGROUND_HIGH, after a 4×4 box filter (Gaussian noise of σ shrinks to σ/4). Noise
@@ -154,10 +155,9 @@ def background_of(read_background: float) -> float | None:
     return None if read_background < 0 else float(read_background)
 
 
-def of_config(wm: Any) -> tuple[float, float | None, int]:
-    """``(fraction, background, jitter)`` of a watermark config (``read_window``, ``read_background``,
-    ``read_jitter``)."""
-    return float(wm.read_window), background_of(float(wm.read_background)), int(wm.read_jitter)
+def of_config(reading: ReadingConfig) -> tuple[float, float | None, int]:
+    """``(fraction, background, jitter)`` of a watermark config's ``reading`` section."""
+    return float(reading.window), background_of(float(reading.background)), int(reading.jitter)
 
 
 def of_metadata(meta: Mapping[str, Any]) -> tuple[float, float | None, int]:

@@ -25,14 +25,14 @@ shifted back to end at the image border, so patches may overlap there. Each pixe
 image value and its image-loss gradient come from that patch only, while patch losses see whole patches. The
 same per-patch PRNG keys are used in steps 1 and 3, so a jittered render is reproduced exactly.
 
-Each step draws one training view and ``watermark.ids_per_step`` distinct IDs (default: every ID, at most
+Each step draws one training view and ``watermark.schedule.ids_per_step`` distinct IDs (default: every ID, at most
 16), deterministically from the seed and the step so that a resumed run follows the same path, renders the
 view with each ID's FiLM conditioning and takes one optimiser step on the mean of their objectives (Adam,
 per-group learning rates, exponential decay over both phases). The IDs share one render's geometry and every
 colour layer but the last (``watermark.condition_many``), so each ID learns more often for much less than
 K renders' cost.
 
-Phase 3 (not in the paper; ``watermark.phase3_steps`` > 0): once the field's schedule has ended, or the time
+Phase 3 (not in the paper; ``watermark.phase3.steps`` > 0): once the field's schedule has ended, or the time
 budget has ended the field in time to keep ``phase3_reserve_min`` for it, the decoder alone learns on the
 field's renders of every training view (and of novel views) with every ID (``decoder_refit``); the field
 does not change. :func:`refit_phase` runs it and checkpoints at step ``phase-1 + phase-2 + phase-3 steps``.
@@ -118,33 +118,27 @@ def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequen
     config = dataclasses.replace(
         config, watermark=dataclasses.replace(config.watermark, num_ids=int(num_ids), bits=int(bits))
     )
-    watermark.check_config(config.watermark)
+    config.watermark.check_ids()
     keys_lib.check_sizes(int(num_ids), int(bits))
     # The run's config records the schedule it ran, not -1.
     phase1, phase2 = watermark.phase_steps(config.watermark)
-    config = dataclasses.replace(
-        config, watermark=dataclasses.replace(config.watermark, phase1_steps=phase1, phase2_steps=phase2)
-    )
+    schedule = dataclasses.replace(config.watermark.schedule, phase1_steps=phase1, phase2_steps=phase2)
+    config = dataclasses.replace(config, watermark=dataclasses.replace(config.watermark, schedule=schedule))
     cfg = config.watermark
-    if cfg.perceptual not in ("watson", "vgg"):
-        raise EmbedError(f"unknown watermark.perceptual {cfg.perceptual!r} (watson | vgg)")
-    if cfg.augment_strength not in augment.STRENGTHS:
-        raise EmbedError(f"unknown watermark.augment_strength {cfg.augment_strength!r} "
-                         f"({' | '.join(augment.STRENGTHS)})")  # fmt: skip
     try:
-        augment.resolve_names(cfg.augment_names or None, cfg.augment_per_step)
+        augment.resolve_names(cfg.augment.names or None, cfg.augment.per_step)
     except augment.AugmentError as err:
-        raise EmbedError(f"watermark.augment_names / augment_per_step: {err}") from None
-    if cfg.wavelet not in dwt.DEC_LO:
-        raise EmbedError(f"unknown watermark.wavelet {cfg.wavelet!r} ({' | '.join(dwt.DEC_LO)})")
-    if cfg.read_window:
-        read_window.check_fraction(cfg.read_window, "watermark.read_window")
-    if cfg.read_jitter < 0 or (cfg.read_jitter and not cfg.read_window):
-        raise EmbedError(f"watermark.read_jitter is a radius in pixels ≥ 0 that moves the read window, and "
-                         f"needs watermark.read_window > 0; got {cfg.read_jitter} with read_window "
-                         f"{cfg.read_window}")  # fmt: skip
+        raise EmbedError(f"watermark.augment.names / per_step: {err}") from None
+    if cfg.reading.wavelet not in dwt.DEC_LO:
+        raise EmbedError(f"unknown watermark.reading.wavelet {cfg.reading.wavelet!r} ({' | '.join(dwt.DEC_LO)})")
+    if cfg.reading.window:
+        read_window.check_fraction(cfg.reading.window, "watermark.reading.window")
+    if cfg.reading.jitter < 0 or (cfg.reading.jitter and not cfg.reading.window):
+        raise EmbedError(f"watermark.reading.jitter is a radius in pixels ≥ 0 that moves the read window, and "
+                         f"needs watermark.reading.window > 0; got {cfg.reading.jitter} with read_window "
+                         f"{cfg.reading.window}")  # fmt: skip
     if total_steps(config.watermark) < 1:
-        raise EmbedError("watermark.phase1_steps + watermark.phase2_steps must be ≥ 1")
+        raise EmbedError("watermark.schedule.phase1_steps + watermark.schedule.phase2_steps must be ≥ 1")
     return config
 
 
@@ -167,11 +161,9 @@ def watermark_defaults_drift(run_dir: str | Path, overrides: Iterable[str] = ())
         today = config_lib.load_preset(recorded.name).watermark
     except config_lib.ConfigError:
         return []
-    return [
-        f"{f.name} {getattr(recorded.watermark, f.name)!r} (today {getattr(today, f.name)!r})"
-        for f in dataclasses.fields(today)
-        if f.name not in overridden and getattr(recorded.watermark, f.name) != getattr(today, f.name)
-    ]
+    was, now = config_lib.flat_items(recorded.watermark), config_lib.flat_items(today)
+    skip = set(config_lib.flat_items(overridden))
+    return [f"{name} {was[name]!r} (today {now[name]!r})" for name in now if name not in skip and was[name] != now[name]]
 
 
 def _has_checkpoints(out: Path) -> bool:
@@ -203,7 +195,7 @@ def embed(
       source_run: a fitted TensoRF run (``mnerf fit``).
       out_dir: the watermarked run: ``run.json``, ``config.json``, ``checkpoints/``, ``keys.json``,
         ``decoder.npz`` (the decoder as fine-tuned with the field, then refitted alone in phase 3 when
-        ``watermark.phase3_steps`` > 0), ``embed.json`` (progress).
+        ``watermark.phase3.steps`` > 0), ``embed.json`` (progress).
       num_ids, bits: ``N`` IDs with ``L``-bit messages (the decoder must read ``L`` bits).
       preset, overrides: the watermark config (``--config``, ``--set``).
       decoder_path: the decoder to start from (default: the shipped one for ``bits``); ``"fresh"``: a
@@ -213,7 +205,7 @@ def embed(
       stop_at: stop after this many steps in all (a checkpoint is written there).
       on_step: called after every step with ``(step, metrics)``.
     """
-    started = time.perf_counter()  # the time budget's clock (watermark.time_budget_min)
+    started = time.perf_counter()  # the time budget's clock (watermark.time_budget.minutes)
     out = Path(out_dir)
     source = load_source(source_run)
     config = resolve_config(source, preset, overrides, num_ids, bits)
@@ -229,21 +221,21 @@ def embed(
     scene = source.load_scene(data_path, splits=("train",))
     split = scene.split("train")
     check_rgb_images(split.images, f"{data_path or source.data_path or 'procedural scene'} (train split)")
-    if cfg.phase3_steps and cfg.phase3_views and split.cameras.ndc is not None:
-        raise EmbedError("watermark.phase3_views renders novel views around the cameras of an object-centred "
-                         "scene; this one is forward-facing: set watermark.phase3_views=0")  # fmt: skip
+    if cfg.phase3.steps and cfg.phase3.views and split.cameras.ndc is not None:
+        raise EmbedError("watermark.phase3.views renders novel views around the cameras of an object-centred "
+                         "scene; this one is forward-facing: set watermark.phase3.views=0")  # fmt: skip
     if loaded is None:
-        loaded = decoder_io.fresh_decoder(bits, split.images, seed=cfg.seed, wavelet=cfg.wavelet)
+        loaded = decoder_io.fresh_decoder(bits, split.images, seed=cfg.seed, wavelet=cfg.reading.wavelet)
     decoder_source = decoder_io.FRESH if fresh else str(Path(loaded.path).resolve())
     height, width = int(split.images.shape[1]), int(split.images.shape[2])
     # The layout tiles the image with the fewest patches of at most patch_size (no overlap where it divides).
     # A cached source renders the whole view from its cached samples: one patch, whatever patch_size says.
-    side = max(height, width) if cfg.cache_source else cfg.patch_size
+    side = max(height, width) if cfg.schedule.cache_source else cfg.schedule.patch_size
     layout = patch_layout(height, width, tiling_patch_size(height, width, side, losses.SSIM_WINDOW))
-    if cfg.lambda_ssim and layout.size < losses.SSIM_WINDOW:
+    if cfg.losses.lambda_ssim and layout.size < losses.SSIM_WINDOW:
         window = losses.SSIM_WINDOW
-        raise EmbedError(f"patches of {layout.size} px (images {height}×{width}, watermark.patch_size "
-                         f"{cfg.patch_size}) are below SSIM's {window}×{window} window")  # fmt: skip
+        raise EmbedError(f"patches of {layout.size} px (images {height}×{width}, watermark.schedule.patch_size "
+                         f"{cfg.schedule.patch_size}) are below SSIM's {window}×{window} window")  # fmt: skip
 
     store = CheckpointStore(out, keep=max(cfg.keep_checkpoints, 1))
     # A fitted field keeps most of its in-mask samples for colour (91 % on the tiny test scene), so the colour
@@ -259,11 +251,6 @@ def embed(
                 raise EmbedError(f"{out}: its checkpoint holds a {meta.get('kind')!r} model, not a watermark")
             saved = wm_run.normalised_meta(meta)
             check_compatible(saved, wm_run.fingerprint_config(config), out, wm_run.SECTIONS)
-            if config.watermark.budget_sizes_field:  # the run's sized schedule, not the preset's
-                ran = meta["config"]["watermark"]
-                config = dataclasses.replace(config, watermark=dataclasses.replace(
-                    config.watermark, phase1_steps=int(ran["phase1_steps"]),
-                    phase2_steps=int(ran["phase2_steps"])))  # fmt: skip
             check_phase3_unchanged(meta, config, out)
             _, tree, meta = wm_run.restore(store, out, optimizer=make_optimizer)
             state = EmbedState(
@@ -294,12 +281,12 @@ def embed(
                 "decoder_source_fingerprint": loaded.fingerprint,
             })  # fmt: skip
             keys_lib.save_keys(out, keys)
-        vgg = losses.vgg_params() if cfg.perceptual == "vgg" and cfg.lambda_perceptual else None
+        vgg = losses.vgg_params() if cfg.losses.perceptual == "vgg" and cfg.losses.lambda_perceptual else None
         # Committed to the device from the start, as every later step's state is (a step's outputs are): an
         # uncommitted first state is another cache key for jit, so the first step compiled twice.
         state = jax.device_put(state, jax.devices()[0])
         cache = None
-        if cfg.cache_source:
+        if cfg.schedule.cache_source:
             cache = sample_cache.build_cache(state.params, geometry, config.model, split.cameras, progress)
         references = None
         if uses_clean_renders(cfg):  # from the cached samples when there are some: the same renders
@@ -312,7 +299,7 @@ def embed(
         field_done = result.steps == total_steps(cfg) and (stop_at is None or stop_at > result.steps)
         # A field the time budget ended still gets phase 3, in the minutes the budget kept for it.
         cut = result.stopped_by_budget and loop.clock is not None and loop.clock.kept_s > 0
-        if cfg.phase3_steps and (field_done or cut):
+        if cfg.phase3.steps and (field_done or cut):
             result = refit_phase(loop, result, split, source, progress)
         return result
     finally:
@@ -325,8 +312,8 @@ def check_phase3_unchanged(meta: dict[str, Any], config: Config, out: Path) -> N
     if int(meta["step"]) <= total_steps(config.watermark):
         return
     # A key the run's version did not have ran at its default (phase3_lambda_clean came later).
-    ran = {k: meta["config"]["watermark"].get(k, d) for k, d in wm_run.PHASE3_DEFAULTS.items()}
-    now = {k: getattr(config.watermark, k) for k in wm_run.PHASE3_DEFAULTS}
+    ran = config_lib.from_dict(meta["config"]).watermark.phase3
+    now = config.watermark.phase3
     if ran != now:
         raise EmbedError(f"{out} has finished its phase 3 (step {meta['step']}) with {ran}, not {now}; "
                          "a decoder is refitted once: resume with those settings, or embed anew")  # fmt: skip

@@ -88,7 +88,7 @@ class EmbedResult:
     seconds: float
     last_metrics: dict[str, float]
     redone_steps: int
-    stopped_by_budget: bool = False  # watermark.time_budget_min ended it before its schedule did
+    stopped_by_budget: bool = False  # watermark.time_budget.minutes ended it before its schedule did
     state: EmbedState | None = None  # the state it ended with
 
 
@@ -119,8 +119,8 @@ class EmbedLoop:
     on_step: Callable[[int, dict[str, float]], None] | None
     vgg: Any
     references: np.ndarray | None = None  # clean renders of the training views (wm_step.uses_clean_renders)
-    clock: embed_budget.BudgetClock | None = None  # watermark.time_budget_min, when set
-    cache: sample_cache.SampleCache | None = None  # watermark.cache_source: the fitted field's samples
+    clock: embed_budget.BudgetClock | None = None  # watermark.time_budget.minutes, when set
+    cache: sample_cache.SampleCache | None = None  # watermark.schedule.cache_source: the fitted field's samples
 
     def __post_init__(self) -> None:
         # What every step passes unchanged, made once rather than per step.
@@ -148,11 +148,11 @@ class EmbedLoop:
             state.decoder,
             {
                 "embed_step": step,
-                "read_window": wm.read_window,
-                "read_background": wm.read_background,
-                "read_jitter": wm.read_jitter,
+                "read_window": wm.reading.window,
+                "read_background": wm.reading.background,
+                "read_jitter": wm.reading.jitter,
             },
-            wavelet=wm.wavelet,
+            wavelet=wm.reading.wavelet,
         )
         self.keys = keys_lib.with_fingerprint(self.keys, dec_meta["fingerprint"])
         keys_lib.save_keys(self.out, self.keys)
@@ -162,25 +162,6 @@ class EmbedLoop:
         )
         if self.clock is not None:
             self.clock.checkpoint_s = time.perf_counter() - tick
-
-    def size_schedule(self, step: int, now: float) -> bool:
-        """Shorten phase 2 to the steps that end inside the time budget (``watermark.budget_sizes_field``,
-        ``embed_budget.sized_field_steps``); the run's config.json and later checkpoints record it. True
-        when the schedule changed."""
-        wm = self.config.watermark
-        total = embed_budget.sized_field_steps(self.clock, now, step, self._total_steps, wm.checkpoint_every)
-        if total >= self._total_steps:
-            return False
-        phase2 = max(total - wm.phase1_steps, 1)
-        wm = dataclasses.replace(wm, phase1_steps=total - phase2, phase2_steps=phase2)
-        self.config = dataclasses.replace(self.config, watermark=wm)
-        self._total_steps, self._total = total, jnp.asarray(total, jnp.int32)
-        rundir.write_json_atomic(self.out / rundir.CONFIG_FILE, self.config.to_dict())
-        if self.progress:
-            step_s = self.clock.expected_step_s()
-            tqdm.write(f"embed: the time budget ({wm.time_budget_min:g} min) holds {total} of the field's "
-                       f"steps at {step_s:.2f} s a step; its schedule now ends there")  # fmt: skip
-        return True
 
     def dispatch(self, state: EmbedState, step: int, phase: int) -> StepOutcome | None:
         """Step ``step`` (its IDs and view from the seed) in ``phase``: the new state and host metrics, or
@@ -212,15 +193,13 @@ class EmbedLoop:
         clock started at ``started``) has no room for another step."""
         cfg = self.config.watermark
         t0 = time.perf_counter()
-        if cfg.time_budget_min > 0:
-            kept = cfg.phase3_reserve_min * 60.0 if cfg.phase3_steps else 0.0
-            self.clock = embed_budget.BudgetClock(cfg.time_budget_min * 60.0, started, kept_s=kept)
+        if cfg.time_budget.minutes > 0:
+            kept = cfg.phase3.reserve_min * 60.0 if cfg.phase3.steps else 0.0
+            self.clock = embed_budget.BudgetClock(cfg.time_budget.minutes * 60.0, started, kept_s=kept)
         total = total_steps(cfg)
         stop = total if stop_at is None else min(int(stop_at), total)
         start = step = int(state.step)
         every = max(int(cfg.checkpoint_every), 1)
-        sizing = self.clock is not None and cfg.budget_sizes_field and step < total
-        size_at = start + embed_budget.FIELD_SIZING_STEPS if sizing else -1
         bar = tqdm(total=stop, initial=start, disable=not self.progress, desc="embed", unit="step",
                    dynamic_ncols=True)  # fmt: skip
         recent: list[tuple[float, float, float]] = []
@@ -231,13 +210,6 @@ class EmbedLoop:
         try:
             while step < stop:
                 tick = time.perf_counter()
-                if step == size_at and self.size_schedule(step, tick):
-                    cfg, total = self.config.watermark, self._total_steps
-                    stop = min(stop, total)
-                    bar.total = stop
-                    bar.refresh()
-                    if step >= stop:
-                        break
                 if self.clock is not None and not self.clock.room_for_a_step(tick):
                     stopped_by_budget = True
                     break
@@ -264,7 +236,7 @@ class EmbedLoop:
                 log.add(step - 1, host, last=step == stop)
                 if self.on_step is not None:
                     self.on_step(step - 1, host)
-                if step % every == 0 or step == stop or step == cfg.phase1_steps:
+                if step % every == 0 or step == stop or step == cfg.schedule.phase1_steps:
                     self.save(state)
         finally:
             bar.close()
@@ -272,9 +244,9 @@ class EmbedLoop:
         if stopped_by_budget and self.progress:
             after = ("phase 3 follows in the minutes kept for it" if self.clock and self.clock.kept_s
                      else "--resume continues it")  # fmt: skip
-            tqdm.write(f"embed: the time budget ({cfg.time_budget_min:g} min) ends the field at step {step} "
+            tqdm.write(f"embed: the time budget ({cfg.time_budget.minutes:g} min) ends the field at step {step} "
                       f"of {total}; {after}")  # fmt: skip
-        saved_there = step % every == 0 or step == cfg.phase1_steps
+        saved_there = step % every == 0 or step == cfg.schedule.phase1_steps
         if (stopped_by_budget and not saved_there) or not (self.out / DECODER_FILE).is_file():
             self.save(state)
         return EmbedResult(run_dir=self.out, keys=self.keys, steps=int(state.step),

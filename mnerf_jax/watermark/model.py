@@ -42,28 +42,23 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, get_args
 
 import jax
 import jax.numpy as jnp
 
-from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+from mnerf_jax.core.config import ModelConfig
 from mnerf_jax.core.errors import MnerfError
-from mnerf_jax.reader import significance
+from mnerf_jax.core.watermark_config import MAX_AUTO_IDS_PER_STEP, Variant, WatermarkConfig
 from mnerf_jax.tensorf import field, grids
 from mnerf_jax.tensorf.render import FieldFns, TensorfDensity
-from mnerf_jax.watermark import phase3
 
 Array = jax.Array
 Params = dict
 
-VARIANTS = ("multinerf", "no_grid", "no_film", "frozen_geometry", "early", "waterf", "waterf_mod")
+VARIANTS = get_args(Variant)
 _GRID_VARIANTS = ("multinerf", "no_film", "frozen_geometry", "early")
 _FILM_VARIANTS = ("multinerf", "no_grid", "frozen_geometry", "early")
-# Emb's hidden activation (WatermarkConfig.emb_activation; config.py says what each did).
-EMB_ACTIVATIONS = {"relu": jax.nn.relu, "silu": jax.nn.silu, "tanh": jnp.tanh}
-# What phase 2's clean term reads as unwatermarked (WatermarkConfig.clean_negative).
-CLEAN_NEGATIVES = ("ground_truth", "clean_model")
 # Frequencies of the position encoding that feeds the no_grid variant's MLP.
 POS_FREQS = 6
 POS_HIDDEN = 64
@@ -74,65 +69,6 @@ class WatermarkError(MnerfError):
 
 
 # --------------------------------------------------------------------------------------------- variants
-
-
-def check_config(cfg: WatermarkConfig, num_ids: int | None = None) -> None:
-    """Raise WatermarkError for an unknown variant, bad ranks, or an ID count the variant cannot use."""
-    if cfg.variant not in VARIANTS:
-        raise WatermarkError(f"unknown watermark variant {cfg.variant!r} (known: {', '.join(VARIANTS)})")
-    if min(cfg.wm_ranks) < 0 or sum(cfg.wm_ranks) < 1:
-        raise WatermarkError(f"watermark.wm_ranks must be ≥ 0 with a positive sum, got {cfg.wm_ranks}")
-    if cfg.emb_dim < 1 or cfg.emb_hidden < 1:
-        raise WatermarkError("watermark.emb_dim and watermark.emb_hidden must be ≥ 1")
-    if cfg.emb_activation not in EMB_ACTIVATIONS:
-        raise WatermarkError(f"unknown watermark.emb_activation {cfg.emb_activation!r} "
-                             f"(known: {', '.join(EMB_ACTIVATIONS)})")  # fmt: skip
-    n = cfg.num_ids if num_ids is None else num_ids
-    if n < 1:
-        raise WatermarkError(f"the number of IDs must be ≥ 1, got {n}")
-    if cfg.variant == "waterf" and n != 1:
-        raise WatermarkError(f"variant waterf embeds one message without an ID: use --num-ids 1 (got {n})")
-    if not 0 <= cfg.ids_per_step <= n:
-        raise WatermarkError(f"watermark.ids_per_step must be in [0, {n}] (0: every ID, at most "
-                             f"{MAX_AUTO_IDS_PER_STEP}; {n} IDs), got {cfg.ids_per_step}")  # fmt: skip
-    if cfg.phase1_steps < -1 or cfg.phase2_steps < -1:
-        raise WatermarkError("watermark.phase1_steps and watermark.phase2_steps must be ≥ 0 (-1: by the "
-                             f"number of IDs), got {cfg.phase1_steps} and {cfg.phase2_steps}")  # fmt: skip
-    if not cfg.lambda_key >= 0:
-        raise WatermarkError(f"watermark.lambda_key must be ≥ 0 (0: no key cross-entropy), got "
-                             f"{cfg.lambda_key}")  # fmt: skip
-    if not cfg.id_loss_power >= 0:
-        raise WatermarkError(f"watermark.id_loss_power must be ≥ 0 (0: every ID's BCE weighted alike), got "
-                             f"{cfg.id_loss_power}")  # fmt: skip
-    if cfg.id_test not in significance.ID_TESTS:
-        raise WatermarkError(f"watermark.id_test must be one of {', '.join(significance.ID_TESTS)}, got "
-                             f"{cfg.id_test!r}")  # fmt: skip
-    if not cfg.time_budget_min >= 0:
-        raise WatermarkError(f"watermark.time_budget_min must be ≥ 0 (0: off), got {cfg.time_budget_min}")
-    if (problem := phase3.settings_problem(cfg)) is not None:
-        raise WatermarkError(problem)
-    if cfg.cache_source and (injection(cfg) != "last" or not uses_film(cfg)):
-        raise WatermarkError(f"watermark.cache_source caches the fitted field's last-layer logits: variant "
-                             f"{cfg.variant!r} changes more than them (use multinerf, no_grid or "
-                             "frozen_geometry)")  # fmt: skip
-    if cfg.cache_source and cfg.jitter:
-        raise WatermarkError("watermark.cache_source renders the cached samples of an evaluation render: "
-                             "set watermark.jitter=false")  # fmt: skip
-    if cfg.clean_negative not in CLEAN_NEGATIVES:
-        raise WatermarkError(f"watermark.clean_negative must be one of {', '.join(CLEAN_NEGATIVES)}, got "
-                             f"{cfg.clean_negative!r}")  # fmt: skip
-    if cfg.fidelity_psnr < 0 or cfg.lambda_fidelity < 0:
-        raise WatermarkError("watermark.fidelity_psnr (dB, 0: off) and watermark.lambda_fidelity must be "
-                             f"≥ 0, got {cfg.fidelity_psnr} and {cfg.lambda_fidelity}")  # fmt: skip
-    if cfg.fidelity_psnr_start:
-        first, last = cfg.fidelity_ramp
-        if not 0 < cfg.fidelity_psnr_start <= cfg.fidelity_psnr:
-            raise WatermarkError("watermark.fidelity_psnr_start (dB, 0: no ramp) must be > 0 and at most "
-                                 f"watermark.fidelity_psnr, the budget it tightens to; got "
-                                 f"{cfg.fidelity_psnr_start} and {cfg.fidelity_psnr}")  # fmt: skip
-        if not 0 <= first <= last <= 1:
-            raise WatermarkError("watermark.fidelity_ramp is two fractions of the schedule's steps, "
-                                 f"0 ≤ start ≤ end ≤ 1; got {list(cfg.fidelity_ramp)}")  # fmt: skip
 
 
 def uses_ids(cfg: WatermarkConfig) -> bool:
@@ -157,18 +93,14 @@ def injection(cfg: WatermarkConfig) -> str | None:
     return "last"
 
 
-# IDs per embedding step when watermark.ids_per_step is 0 (all IDs), for runs with more IDs than this.
-MAX_AUTO_IDS_PER_STEP = 16
-
-
 def ids_per_step_of(cfg: WatermarkConfig, num_ids: int | None = None) -> int:
-    """``K``, the IDs an embedding step renders: ``cfg.ids_per_step``, or for 0 every ID up to
+    """``K``, the IDs an embedding step renders: ``cfg.schedule.ids_per_step``, or for 0 every ID up to
     :data:`MAX_AUTO_IDS_PER_STEP`."""
     n = cfg.num_ids if num_ids is None else int(num_ids)
-    return int(cfg.ids_per_step) if cfg.ids_per_step > 0 else min(n, MAX_AUTO_IDS_PER_STEP)
+    return int(cfg.schedule.ids_per_step) if cfg.schedule.ids_per_step > 0 else min(n, MAX_AUTO_IDS_PER_STEP)
 
 
-# Steps per ID of the automatic schedule (watermark.phase1_steps / phase2_steps = -1), for at least
+# Steps per ID of the automatic schedule (watermark.schedule.phase1_steps / phase2_steps = -1), for at least
 # AUTO_SCHEDULE_MIN_IDS IDs: 4 IDs get 200 + 800 steps (the paper's ~1,000), 16 IDs 800 + 3,200. More IDs
 # need more steps even when every ID renders on every step: lego 1/8, 16 IDs x 16 bits, on a GPU, 62.4 %
 # bits after 1,000 steps and 95.1 % after 4,000; the demo scene, 16 IDs, 59.3 % after 1,000 (4 IDs: 94 %).
@@ -184,14 +116,14 @@ AUTO_SCHEDULE_MIN_IDS = 4
 def phase_steps(cfg: WatermarkConfig, num_ids: int | None = None) -> tuple[int, int]:
     """``(phase-1 steps, phase-2 steps)``: the config's, or for -1 the automatic schedule for the IDs."""
     n = max(cfg.num_ids if num_ids is None else int(num_ids), AUTO_SCHEDULE_MIN_IDS)
-    p1 = n * AUTO_PHASE1_STEPS_PER_ID if cfg.phase1_steps < 0 else int(cfg.phase1_steps)
-    p2 = n * AUTO_PHASE2_STEPS_PER_ID if cfg.phase2_steps < 0 else int(cfg.phase2_steps)
+    p1 = n * AUTO_PHASE1_STEPS_PER_ID if cfg.schedule.phase1_steps < 0 else int(cfg.schedule.phase1_steps)
+    p2 = n * AUTO_PHASE2_STEPS_PER_ID if cfg.schedule.phase2_steps < 0 else int(cfg.schedule.phase2_steps)
     return p1, p2
 
 
 def wm_channels(cfg: WatermarkConfig) -> int:
     """``C``: watermark feature channels (``Σ wm_ranks``, 24 by default)."""
-    return int(sum(cfg.wm_ranks))
+    return int(sum(cfg.module.wm_ranks))
 
 
 def extra_width(cfg: WatermarkConfig) -> int:
@@ -199,15 +131,15 @@ def extra_width(cfg: WatermarkConfig) -> int:
     if cfg.variant == "waterf":
         return 0
     if cfg.variant == "waterf_mod":
-        return cfg.emb_dim
+        return cfg.module.emb_dim
     if cfg.variant == "no_film":
-        return wm_channels(cfg) + cfg.emb_dim
+        return wm_channels(cfg) + cfg.module.emb_dim
     return wm_channels(cfg)
 
 
 def trains_density(cfg: WatermarkConfig) -> bool:
     """False for frozen_geometry and a cached source: the density grid keeps the fitted values."""
-    return cfg.variant != "frozen_geometry" and not cfg.cache_source
+    return cfg.variant != "frozen_geometry" and not cfg.schedule.cache_source
 
 
 # ------------------------------------------------------------------------------------------------- init
@@ -240,22 +172,22 @@ def init_watermark(
       grid_scale: std of the watermark grid factors (TensoRF's 0.1).
       mod_scale: ``Mod`` starts at this times torch's default init ``U(±1/√emb_dim)``.
     """
-    check_config(cfg, num_ids)
+    cfg.check_ids(num_ids)
     k_grid, k_pos0, k_pos1, k_emb0, k_emb1, k_mod = jax.random.split(key, 6)
     wm: Params = {}
     c = wm_channels(cfg)
     if uses_grid(cfg):
-        wm["grid"] = grids.init_vm(k_grid, resolution, cfg.wm_ranks, grid_scale)
+        wm["grid"] = grids.init_vm(k_grid, resolution, cfg.module.wm_ranks, grid_scale)
     if cfg.variant == "no_grid":
         w0, b0 = _linear(k_pos0, 3 + 6 * POS_FREQS, POS_HIDDEN)
         w1, b1 = _linear(k_pos1, POS_HIDDEN, c)
         wm["pos_mlp"] = {"w0": w0, "b0": b0, "w1": w1, "b1": b1}
     if uses_ids(cfg):
-        w0, b0 = _linear(k_emb0, num_ids, cfg.emb_hidden)
-        w1, b1 = _linear(k_emb1, cfg.emb_hidden, cfg.emb_dim)
+        w0, b0 = _linear(k_emb0, num_ids, cfg.module.emb_hidden)
+        w1, b1 = _linear(k_emb1, cfg.module.emb_hidden, cfg.module.emb_dim)
         wm["emb"] = {"w0": w0, "b0": b0, "w1": w1, "b1": b1}
     if uses_film(cfg):
-        w, b = _linear(k_mod, cfg.emb_dim, 2 * c, mod_scale)
+        w, b = _linear(k_mod, cfg.module.emb_dim, 2 * c, mod_scale)
         wm["mod"] = {"w": w, "b": b}
     return wm
 
@@ -307,11 +239,10 @@ def shrink_watermark(params: Params, lo: tuple[int, ...], hi: tuple[int, ...]) -
 # ---------------------------------------------------------------------------------------------- forward
 
 
-def embed_id(wm: Params, index: Array | int, num_ids: int, activation: str = "relu") -> Array:
-    """``e_n = Emb(onehot(n))``: ``[emb_dim]``. ``index`` may be traced (one compilation for all IDs);
-    ``activation`` is a key of ``EMB_ACTIVATIONS``."""
+def embed_id(wm: Params, index: Array | int, num_ids: int) -> Array:
+    """``e_n = Emb(onehot(n))``: ``[emb_dim]``. ``index`` may be traced (one compilation for all IDs)."""
     onehot = jax.nn.one_hot(jnp.asarray(index, jnp.int32), num_ids, dtype=jnp.float32)
-    h = EMB_ACTIVATIONS[activation](onehot @ wm["emb"]["w0"] + wm["emb"]["b0"])
+    h = jax.nn.relu(onehot @ wm["emb"]["w0"] + wm["emb"]["b0"])
     return h @ wm["emb"]["w1"] + wm["emb"]["b1"]
 
 
@@ -331,7 +262,7 @@ def condition(params: Params, index: Array | int, cfg: WatermarkConfig) -> Any:
         return None
     wm = params["wm"]
     num_ids = int(wm["emb"]["w0"].shape[0])
-    e = embed_id(wm, index, num_ids, cfg.emb_activation)
+    e = embed_id(wm, index, num_ids)
     if uses_film(cfg):
         gamma, beta = film(wm, e)
         return {"gamma": gamma, "beta": beta}

@@ -3,7 +3,7 @@
 In phase 2 the decoder learns one view per step, from renders that keep changing under it. Once the field is
 fixed, every training view rendered with every ID is a labelled set of exactly the images the decoder will be
 given, and a decoder step on it costs a fraction of a field step (no render, no back-propagation into the
-field). Phase 3 renders that set once (``watermark.phase3_views`` more views around the training cameras on
+field). Phase 3 renders that set once (``watermark.phase3.views`` more views around the training cameras on
 object-centred scenes), then trains the decoder's weights alone on it: the message BCE and the key term of
 phase 2 on every render, and ``phase3_lambda_clean`` · BCE against ½ on unwatermarked images (the training
 views' photographs, and the clean model's renders of every view used); half of each batch is rounded to 8
@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, get_args
 
 import flax.struct
 import jax
@@ -26,7 +26,7 @@ import optax
 from tqdm.auto import tqdm
 
 from mnerf_jax.core import xla_cpu
-from mnerf_jax.core.config import WatermarkConfig
+from mnerf_jax.core.watermark_config import ViewDensity, WatermarkConfig
 from mnerf_jax.data import trajectory
 from mnerf_jax.data.types import Cameras
 from mnerf_jax.imaging import augment, losses
@@ -39,29 +39,7 @@ PyTree = Any
 # A batch holds phase3_batch renders and a quarter as many unwatermarked images (8 per 32, as in the sweep of
 # docs/findings.md, "The decoder refitted on the finished field").
 NEGATIVES_PER_BATCH_DIVISOR = 4
-VIEW_DENSITIES = ("angles", "sphere")  # novel_cameras' spreads of the elevation
-
-
-def settings_problem(cfg: WatermarkConfig) -> str | None:
-    """What is wrong with ``cfg``'s phase-3 settings, in one line, or None (``watermark.check_config``
-    raises it)."""
-    if (
-        min(cfg.phase3_steps, cfg.phase3_views) < 0
-        or cfg.phase3_batch < 1
-        or not cfg.phase3_lr > 0
-        or not cfg.phase3_reserve_min >= 0
-        or not cfg.phase3_lambda_clean >= 0
-    ):
-        return ("watermark.phase3_steps and phase3_views must be ≥ 0 (0 steps: no phase 3), "
-                "phase3_batch ≥ 1, phase3_lr > 0, phase3_reserve_min ≥ 0 and phase3_lambda_clean ≥ 0; got "
-                f"{cfg.phase3_steps}, {cfg.phase3_views}, {cfg.phase3_batch}, {cfg.phase3_lr}, "
-                f"{cfg.phase3_reserve_min}, {cfg.phase3_lambda_clean}")  # fmt: skip
-    if cfg.phase3_view_density not in VIEW_DENSITIES or not 0 <= cfg.phase3_elevation_margin <= 90:
-        return (
-            f"watermark.phase3_view_density must be one of {VIEW_DENSITIES} and phase3_elevation_margin "
-            f"within [0, 90] degrees; got {cfg.phase3_view_density!r}, {cfg.phase3_elevation_margin}"
-        )
-    return None
+VIEW_DENSITIES = get_args(ViewDensity)  # novel_cameras' spreads of the elevation
 
 
 @flax.struct.dataclass
@@ -126,7 +104,7 @@ def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_tr
                      clean_renders: np.ndarray | None = None,
                      training_renders: dict[int, np.ndarray] | None = None) -> RefitSet:  # fmt: skip
     """Phase 3's training set from a loaded watermarked run (``wm_run.load_watermarked_run``): every ID's
-    renders of ``cameras`` (the training views) and of ``watermark.phase3_views`` novel views
+    renders of ``cameras`` (the training views) and of ``watermark.phase3.views`` novel views
     (:func:`novel_cameras`, seeded by ``watermark.seed``), rendered as evaluation renders them (no jitter).
     The negatives: ``ground_truth [V, H, W, 3]`` (the training images) and, given the run it was embedded
     into (``clean_model``, a loaded TensoRF run), its renders of the same views: an unwatermarked render is
@@ -143,9 +121,9 @@ def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_tr
         raise ValueError(f"{len(clean_renders)} clean renders for {len(cameras)} training views")
     keys = run.extras["keys"]
     sets = [cameras]
-    if cfg.phase3_views:
-        sets.append(novel_cameras(cameras, int(cfg.phase3_views), int(cfg.seed), cfg.phase3_view_density,
-                                  cfg.phase3_elevation_margin))  # fmt: skip
+    if cfg.phase3.views:
+        sets.append(novel_cameras(cameras, int(cfg.phase3.views), int(cfg.seed), cfg.phase3.view_density,
+                                  cfg.phase3.elevation_margin))  # fmt: skip
     to_draw = sets if training_renders is None else sets[1:]
     views = sum(len(c) for c in to_draw)
     bar = tqdm(total=views * keys.num_ids, disable=not progress, desc="embed phase 3 (renders)",
@@ -178,12 +156,12 @@ def refit_rate(cfg: WatermarkConfig, step: Any, total: Any) -> jax.Array:
     warm = jnp.maximum(jnp.floor(n / 10.0), 1.0)
     rise = s / warm
     fall = 0.5 * (1.0 + jnp.cos(jnp.pi * jnp.clip((s - warm) / jnp.maximum(n - warm, 1.0), 0.0, 1.0)))
-    return cfg.phase3_lr * jnp.where(s < warm, rise, fall)
+    return cfg.phase3.lr * jnp.where(s < warm, rise, fall)
 
 
 def refit_schedule(cfg: WatermarkConfig) -> optax.Schedule:
     """:func:`refit_rate` over the configured ``phase3_steps``."""
-    return lambda count: refit_rate(cfg, count, max(int(cfg.phase3_steps), 1))
+    return lambda count: refit_rate(cfg, count, max(int(cfg.phase3.steps), 1))
 
 
 def refit_optimizer(cfg: WatermarkConfig) -> optax.GradientTransformation:
@@ -210,19 +188,19 @@ def make_refit_step(
     rounded to 8 bits with probability ½; the run's augmentations when phase 2 had them
     (``augment_prob > 0``); then the read window, LL2 and the decoder (eval-mode BatchNorm, as phase 2).
     """
-    batch = int(cfg.phase3_batch)
-    n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.phase3_lambda_clean else 0
-    window, background, _ = read_window.of_config(cfg)  # phase 3 trains on the centred window (findings)
+    batch = int(cfg.phase3.batch)
+    n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.phase3.lambda_clean else 0
+    window, background, _ = read_window.of_config(cfg.reading)  # phase 3 trains on the centred window (findings)
     tx = refit_optimizer(cfg)
 
     def prepare(key: jax.Array, images: jax.Array) -> jax.Array:
         k_round, k_aug = jax.random.split(key)
         rounded = jnp.round(images * 255.0) / 255.0
         images = jnp.where(jax.random.bernoulli(k_round, 0.5, (images.shape[0], 1, 1, 1)), rounded, images)
-        if cfg.augment_prob > 0 and cfg.augment_per_step > 0:
-            images = augment.random_policy(k_aug, images, cfg.augment_strength, k=cfg.augment_per_step,
-                                           p=cfg.augment_prob, names=cfg.augment_names or None)  # fmt: skip
-        return dwt.ll2(read_window.read_window(images, window, background), cfg.wavelet)
+        if cfg.augment.prob > 0 and cfg.augment.per_step > 0:
+            images = augment.random_policy(k_aug, images, cfg.augment.strength, k=cfg.augment.per_step,
+                                           p=cfg.augment.prob, names=cfg.augment.names or None)  # fmt: skip
+        return dwt.ll2(read_window.read_window(images, window, background), cfg.reading.wavelet)
 
     def logits_of(params: PyTree, ll2: jax.Array) -> jax.Array:
         return decoder_lib.apply_ll2({**decoder_state, "params": params}, ll2)
@@ -241,13 +219,13 @@ def make_refit_step(
 
         def loss_fn(p: PyTree) -> jax.Array:
             z = logits_of(p, seen)
-            loss = cfg.lambda_message * losses.bce_with_logits(z, messages[ids], cfg.bce_temperature)
-            if cfg.lambda_key:
-                loss = loss + cfg.lambda_key * losses.key_cross_entropy(z, messages, ids, cfg.bce_temperature)
+            loss = cfg.losses.lambda_message * losses.bce_with_logits(z, messages[ids], cfg.losses.bce_temperature)
+            if cfg.losses.lambda_key:
+                loss = loss + cfg.losses.lambda_key * losses.key_cross_entropy(z, messages, ids, cfg.losses.bce_temperature)
             if n_neg:
                 z_clean = logits_of(p, clean)
-                clean_bce = losses.bce_with_logits(z_clean, 0.5, cfg.bce_temperature)
-                loss = loss + cfg.phase3_lambda_clean * clean_bce
+                clean_bce = losses.bce_with_logits(z_clean, 0.5, cfg.losses.bce_temperature)
+                loss = loss + cfg.phase3.lambda_clean * clean_bce
             return loss
 
         loss, grads = jax.value_and_grad(loss_fn)(params)
@@ -286,7 +264,7 @@ def refit_decoder(
     opt_state = jax.device_put(refit_optimizer(cfg).init(params), device)
     key = jax.random.fold_in(jax.random.key(int(cfg.seed)), 0xDEC3)
     loss = jnp.full((), jnp.nan)
-    total = int(cfg.phase3_steps)
+    total = int(cfg.phase3.steps)
     done = 0
     timed: list[float] = []
     bar = tqdm(total=total, disable=not progress, desc="embed phase 3 (decoder)", unit="step",

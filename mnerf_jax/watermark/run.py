@@ -22,8 +22,9 @@ import optax
 from mnerf_jax.core import config as config_lib
 from mnerf_jax.core import rundir
 from mnerf_jax.core.checkpoint import CheckpointStore
-from mnerf_jax.core.config import Config, TrainConfig, WatermarkConfig
+from mnerf_jax.core.config import Config, TrainConfig
 from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.core.watermark_config import WatermarkConfig, normalised
 from mnerf_jax.reader import decoder as decoder_lib
 from mnerf_jax.reader import decoder_io
 from mnerf_jax.reader import keys as keys_lib
@@ -42,24 +43,11 @@ class EmbedError(MnerfError):
     """Bad input to the embedding (a source that is not a fitted TensoRF, an unusable WMRUN, bad images)."""
 
 
-# Phase 3's fields at their defaults (off).
-PHASE3_DEFAULTS = {f.name: f.default for f in dataclasses.fields(WatermarkConfig)
-                   if f.name.startswith("phase3_")}  # fmt: skip
-
-
 def fingerprint_config(config: Config) -> Config:
-    """The config with everything that does not change the embedding's trajectory normalised away."""
-    # The time budget only decides where a run stops, not its trajectory: a stopped run may be resumed under
-    # another budget (or none). Phase 3 comes after the field's trajectory, so a finished two-phase run may be
-    # resumed with one (embed.py refuses to run a second one). How the renders are read (the decision rule,
-    # the jittered read) does not enter the embedding either.
-    # A schedule the budget sizes (budget_sizes_field) is the run's own: the preset's length is not compared.
-    wm = dataclasses.replace(config.watermark, checkpoint_every=0, keep_checkpoints=0, id_threshold=0.0,
-                             id_test="binomial", read_jitter=0, time_budget_min=0.0,
-                             **PHASE3_DEFAULTS)  # fmt: skip
-    if wm.budget_sizes_field:
-        wm = dataclasses.replace(wm, phase1_steps=0, phase2_steps=0)
-    return dataclasses.replace(config, train=TrainConfig(), watermark=wm)
+    """The config with everything that does not change the embedding's trajectory at its default
+    (``trajectory`` metadata: the time budget, phase 3, how renders are read, checkpointing), so a run may be
+    resumed with those changed; and the fit's schedule, which the embedding does not read."""
+    return dataclasses.replace(config, train=TrainConfig(), watermark=normalised(config.watermark, "trajectory"))
 
 
 def normalised_meta(meta: dict[str, Any]) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""The fitted field's colour samples of every training view, computed once (``watermark.cache_source``).
+"""The fitted field's colour samples of every training view, computed once (``watermark.schedule.cache_source``).
 
 With the fitted TensoRF frozen, a watermarked render differs from the clean one only in what the watermark
 adds to the colour MLP's last-layer logits (``watermark.film_logits``): the samples, their compositing

@@ -1,6 +1,6 @@
 """The compiled watermark-embedding step: its static spec, optimiser groups, losses and one jitted step.
 
-One step renders one training view with the FiLM conditioning of K IDs (``watermark.ids_per_step``; one
+One step renders one training view with the FiLM conditioning of K IDs (``watermark.schedule.ids_per_step``; one
 geometry pass for all of them) and back-propagates the mean of their two-phase objectives by deferred
 back-propagation (:mod:`mnerf_jax.watermark.deferred`); :mod:`mnerf_jax.watermark.embed` drives it (the
 objective and the phases are described there).
@@ -19,7 +19,8 @@ import jax.numpy as jnp
 import optax
 
 from mnerf_jax.core import xla_cpu
-from mnerf_jax.core.config import ModelConfig, WatermarkConfig
+from mnerf_jax.core.config import ModelConfig
+from mnerf_jax.core.watermark_config import WatermarkConfig, normalised
 from mnerf_jax.imaging import augment, losses
 from mnerf_jax.imaging import metrics as metrics_lib
 from mnerf_jax.reader import decoder as decoder_lib
@@ -28,7 +29,7 @@ from mnerf_jax.tensorf import raymarch, render
 from mnerf_jax.watermark import model as watermark
 from mnerf_jax.watermark import sample_cache
 from mnerf_jax.watermark.deferred import PyTree, RenderFn, deferred_grad
-from mnerf_jax.watermark.run import PHASE3_DEFAULTS, EmbedError
+from mnerf_jax.watermark.run import EmbedError
 
 
 @flax.struct.dataclass
@@ -70,24 +71,12 @@ def total_steps(cfg: WatermarkConfig) -> int:
     return sum(watermark.phase_steps(cfg))
 
 
-# Fields of WatermarkConfig that only the host loop reads (which step is in which phase, keys, seeds,
-# checkpoints, identification, the time budget, and every phase-3 setting: phase 3 has its own step). The
-# learning-rate decay's length is an argument of the compiled step, so the schedule can be sized after its
-# steps are timed (embed_budget.py).
-_HOST_ONLY_FIELDS = (
-    "min_hamming", "key_seed", "checkpoint_every", "seed", "id_threshold", "id_test", "keep_checkpoints",
-    "time_budget_min", "budget_sizes_field", "phase1_steps", "phase2_steps", "fidelity_psnr_start",
-    "fidelity_ramp",
-    *PHASE3_DEFAULTS,
-)  # fmt: skip
-
-
 def step_config(cfg: WatermarkConfig) -> WatermarkConfig:
-    """``cfg`` as :class:`StepSpec` holds it: host-only fields at their defaults, so runs that differ only
-    there (the schedule's length included) share one compilation of :func:`embed_step` (the phase itself is
-    ``StepSpec.phase``)."""
-    defaults = WatermarkConfig()
-    return dataclasses.replace(cfg, **{name: getattr(defaults, name) for name in _HOST_ONLY_FIELDS})
+    """``cfg`` as :class:`StepSpec` holds it: the fields only the host loop reads (``host`` metadata: keys,
+    seeds, checkpoints, identification, the schedule's length, the time budget, phase 3) at their defaults,
+    so runs that differ only there share one compilation of :func:`embed_step` (the phase itself is
+    ``StepSpec.phase``; the rate decay's length is an argument of the compiled step)."""
+    return normalised(cfg, "host")
 
 
 def phase_of(step: int, cfg: WatermarkConfig) -> int:
@@ -108,7 +97,7 @@ def param_labels(tree: PyTree, cfg: WatermarkConfig) -> PyTree:
     whole fitted field with ``cache_source``.
     """
     density_label = "source_grid" if watermark.trains_density(cfg) else "frozen"
-    frozen = cfg.cache_source  # the fitted field is cached, so it cannot change
+    frozen = cfg.schedule.cache_source  # the fitted field is cached, so it cannot change
     grid_label = "frozen" if frozen else "source_grid"
     network_label = "frozen" if frozen else "source_network"
 
@@ -140,19 +129,19 @@ def make_optimizer(
     total = jnp.maximum(total_steps(cfg) if total is None else total, 1)
 
     def group(lr: float) -> optax.GradientTransformation:
-        decay = float(cfg.lr_decay_ratio)
+        decay = float(cfg.optim.lr_decay_ratio)
         return optax.chain(
             optax.scale_by_adam(b1=adam_b1, b2=adam_b2, eps=1e-8),
             optax.scale_by_schedule(lambda count: -lr * decay ** (count / total)),
         )
 
     transforms = {
-        "grid": group(cfg.lr_grid),
-        "network": group(cfg.lr_network),
-        "source_grid": group(cfg.lr_grid * cfg.lr_source_scale),
-        "source_network": group(cfg.lr_network * cfg.lr_source_scale),
-        "decoder": group(cfg.lr_decoder),
-        "embedding": group(cfg.lr_embedding),
+        "grid": group(cfg.optim.lr_grid),
+        "network": group(cfg.optim.lr_network),
+        "source_grid": group(cfg.optim.lr_grid * cfg.optim.lr_source_scale),
+        "source_network": group(cfg.optim.lr_network * cfg.optim.lr_source_scale),
+        "decoder": group(cfg.optim.lr_decoder),
+        "embedding": group(cfg.optim.lr_embedding),
         "frozen": optax.set_to_zero(),
     }
     return optax.multi_transform(transforms, functools.partial(param_labels, cfg=cfg))
@@ -163,7 +152,7 @@ def render_patch_fn(
 ) -> RenderFn:
     """Patch renders with the IDs ``ids [K]``: ``rgb [R, 3K]`` (ID ``ids[k]`` in columns ``3k:3k+3``).
 
-    With ``cache`` (``watermark.cache_source``: the view's ``cache_*`` buffers) the render is the whole
+    With ``cache`` (``watermark.schedule.cache_source``: the view's ``cache_*`` buffers) the render is the whole
     view from its cached samples (one patch covers it; the rays are not read)."""
     if cache is not None:
         return sample_cache.view_render_fn(spec.wm, geometry.white_bg, ids, cache)
@@ -178,7 +167,7 @@ def render_patch_fn(
             cond = watermark.condition_many(params, ids, spec.wm)
         out = render.render_rays(
             fns, params, cond, rays[0], rays[1], geometry, key,
-            train=spec.wm.jitter, density_budget=spec.density_budget, colour_budget=spec.colour_budget,
+            train=spec.wm.schedule.jitter, density_budget=spec.density_budget, colour_budget=spec.colour_budget,
         )  # fmt: skip
         return out["rgb"], {"density_count": out["density_count"], "colour_count": out["colour_count"]}
 
@@ -186,14 +175,14 @@ def render_patch_fn(
 
 
 def uses_fidelity(cfg: WatermarkConfig) -> bool:
-    """True when the quality budget (``watermark.fidelity_psnr``) is on."""
-    return cfg.fidelity_psnr > 0
+    """True when the quality budget (``watermark.fidelity.psnr``) is on."""
+    return cfg.fidelity.psnr > 0
 
 
 def uses_clean_renders(cfg: WatermarkConfig) -> bool:
     """True when a step needs the clean model's render of its view: the quality budget is on, or the clean
-    term reads the clean model's renders (``watermark.clean_negative``)."""
-    return uses_fidelity(cfg) or (cfg.lambda_clean > 0 and cfg.clean_negative == "clean_model")
+    term reads the clean model's renders (``watermark.losses.clean_negative``)."""
+    return uses_fidelity(cfg) or (cfg.losses.lambda_clean > 0 and cfg.losses.clean_negative == "clean_model")
 
 
 def fidelity_budget_db(cfg: WatermarkConfig, step: int, total: int) -> float:
@@ -201,15 +190,15 @@ def fidelity_budget_db(cfg: WatermarkConfig, step: int, total: int) -> float:
     schedule: ``fidelity_psnr``, or with ``fidelity_psnr_start`` > 0 that until the fraction
     ``fidelity_ramp[0]`` of the steps, then linear in dB up to ``fidelity_psnr`` at ``fidelity_ramp[1]``,
     then ``fidelity_psnr``. Host side: the step receives the budget as data, so the ramp compiles once."""
-    if not cfg.fidelity_psnr_start:
-        return float(cfg.fidelity_psnr)
-    first, last = (float(f) * max(int(total), 1) for f in cfg.fidelity_ramp)
+    if not cfg.fidelity.psnr_start:
+        return float(cfg.fidelity.psnr)
+    first, last = (float(f) * max(int(total), 1) for f in cfg.fidelity.ramp)
     if step <= first:
-        return float(cfg.fidelity_psnr_start)
+        return float(cfg.fidelity.psnr_start)
     if step >= last:
-        return float(cfg.fidelity_psnr)
-    span = cfg.fidelity_psnr - cfg.fidelity_psnr_start
-    return float(cfg.fidelity_psnr_start + span * (step - first) / (last - first))
+        return float(cfg.fidelity.psnr)
+    span = cfg.fidelity.psnr - cfg.fidelity.psnr_start
+    return float(cfg.fidelity.psnr_start + span * (step - first) / (last - first))
 
 
 def fidelity_loss(
@@ -220,7 +209,7 @@ def fidelity_loss(
     at this step) or ``10^(−fidelity_psnr / 10)``: zero, with no gradient, for renders inside it."""
     mse = jnp.mean(jnp.square(renders - reference[None]), axis=(1, 2, 3))
     if budget is None:
-        budget = metrics_lib.psnr_to_mse(cfg.fidelity_psnr)
+        budget = metrics_lib.psnr_to_mse(cfg.fidelity.psnr)
     return jnp.mean(jax.nn.relu(mse / budget - 1.0)), jnp.mean(mse)
 
 
@@ -230,7 +219,7 @@ def perceptual_loss(kind: str, image: jax.Array, reference: jax.Array, vgg_param
         return losses.watson_dct_loss(image, reference, chroma=True)
     if kind == "vgg":
         return losses.vgg_perceptual_loss(image, reference, vgg_params)
-    raise EmbedError(f"unknown watermark.perceptual {kind!r} (watson | vgg)")
+    raise EmbedError(f"unknown watermark.losses.perceptual {kind!r} (watson | vgg)")
 
 
 def split_renders(image: jax.Array) -> jax.Array:
@@ -244,11 +233,11 @@ def patch_loss(cfg: WatermarkConfig, rgb: jax.Array, target: jax.Array) -> jax.A
     renders of one patch (``rgb [S, S, 3K]``) the mean over them."""
     if rgb.shape[-1] != 3:
         return jnp.mean(jax.vmap(lambda r: patch_loss(cfg, r, target))(split_renders(rgb)))
-    loss = cfg.lambda_rgb * jnp.mean(jnp.abs(rgb - target))
-    if cfg.lambda_tv:
-        loss = loss + cfg.lambda_tv * losses.total_variation(rgb)
-    if cfg.lambda_ssim:
-        loss = loss + cfg.lambda_ssim * losses.ssim_loss(rgb, target)
+    loss = cfg.losses.lambda_rgb * jnp.mean(jnp.abs(rgb - target))
+    if cfg.losses.lambda_tv:
+        loss = loss + cfg.losses.lambda_tv * losses.total_variation(rgb)
+    if cfg.losses.lambda_ssim:
+        loss = loss + cfg.losses.lambda_ssim * losses.ssim_loss(rgb, target)
     return loss
 
 
@@ -274,28 +263,28 @@ def message_loss(
     renders' ``ids [K]``) is :func:`losses.key_cross_entropy` on the same logits, its gradient to both
     the renders and the decoder, unweighted.
     """
-    use_key = cfg.lambda_key > 0
+    use_key = cfg.losses.lambda_key > 0
     if use_key and (keys is None or ids is None):
-        raise ValueError("watermark.lambda_key > 0 needs every ID's message (keys) and the renders' ids")
+        raise ValueError("watermark.losses.lambda_key > 0 needs every ID's message (keys) and the renders' ids")
 
     def key_term(z: jax.Array) -> jax.Array:
         if not use_key:
             return jnp.zeros((), jnp.float32)
-        return losses.key_cross_entropy(z, keys, ids, cfg.bce_temperature)
+        return losses.key_cross_entropy(z, keys, ids, cfg.losses.bce_temperature)
 
-    if cfg.id_loss_power <= 0 or renders.shape[0] == 1:
+    if cfg.losses.id_loss_power <= 0 or renders.shape[0] == 1:
         logits = decode(renders, dec_params)
-        bce = losses.bce_with_logits(logits, message, cfg.bce_temperature)
+        bce = losses.bce_with_logits(logits, message, cfg.losses.bce_temperature)
         return bce, bce, key_term(logits)
 
     def per_id(z: jax.Array) -> jax.Array:
-        return jax.vmap(lambda zk, mk: losses.bce_with_logits(zk, mk, cfg.bce_temperature))(z, message)
+        return jax.vmap(lambda zk, mk: losses.bce_with_logits(zk, mk, cfg.losses.bce_temperature))(z, message)
 
     # The decoder's gradient and the value through this pass (renders held), the renders' through the next.
     z_dec = decode(jax.lax.stop_gradient(renders), dec_params)
     z_field = decode(renders, jax.lax.stop_gradient(dec_params))
     bce_k = per_id(z_dec)
-    weight = jax.lax.stop_gradient(bce_k) ** cfg.id_loss_power
+    weight = jax.lax.stop_gradient(bce_k) ** cfg.losses.id_loss_power
     weight = weight / jnp.maximum(jnp.sum(weight), jnp.finfo(jnp.float32).tiny)
     field_k = per_id(z_field)
     bce = jnp.mean(bce_k)
@@ -306,9 +295,9 @@ def message_loss(
 
 
 def windowed(cfg: WatermarkConfig, images: jax.Array) -> jax.Array:
-    """What the decoder reads of images ``[B, H, W, 3]``: the run's read window (``watermark.read_window``;
+    """What the decoder reads of images ``[B, H, W, 3]``: the run's read window (``watermark.reading.window``;
     after the augmentations, as a verifier reads an attacked image)."""
-    fraction, background, _ = read_window.of_config(cfg)
+    fraction, background, _ = read_window.of_config(cfg.reading)
     return read_window.read_window(images, fraction, background)
 
 
@@ -342,34 +331,34 @@ def make_image_loss(
     cfg = spec.wm
     if uses_clean_renders(cfg) and reference is None:
         raise ValueError("the quality budget and clean_negative='clean_model' need the clean model's render")
-    negative = reference if cfg.clean_negative == "clean_model" else target_image
+    negative = reference if cfg.losses.clean_negative == "clean_model" else target_image
 
     def decode(images: jax.Array, dec_params: PyTree) -> jax.Array:
         """Logits ``[B, L]`` of ``images [B, H, W, 3]`` as the decoder sees them (augmented in phase 2: the
         same key, so the same augmentations for every call; their random parameters per image)."""
         seen = images
-        if spec.phase == 2 and cfg.augment_per_step > 0:
-            seen = augment.random_policy(key, seen, cfg.augment_strength, k=cfg.augment_per_step,
-                                         p=cfg.augment_prob, names=cfg.augment_names or None)  # fmt: skip
+        if spec.phase == 2 and cfg.augment.per_step > 0:
+            seen = augment.random_policy(key, seen, cfg.augment.strength, k=cfg.augment.per_step,
+                                         p=cfg.augment.prob, names=cfg.augment.names or None)  # fmt: skip
         variables = {**decoder_state, "params": dec_params}
-        return decoder_lib.apply_ll2(variables, dwt.ll2(windowed(cfg, seen), cfg.wavelet))
+        return decoder_lib.apply_ll2(variables, dwt.ll2(windowed(cfg, seen), cfg.reading.wavelet))
 
     def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
         renders = split_renders(image)  # [K, H, W, 3]
         term, bce, key = message_loss(cfg, decode, renders, dec_params, message, keys, ids)
-        loss = cfg.lambda_message * term + cfg.lambda_key * key
-        if spec.phase == 2 and cfg.lambda_clean:
+        loss = cfg.losses.lambda_message * term + cfg.losses.lambda_key * key
+        if spec.phase == 2 and cfg.losses.lambda_clean:
             clean_logits = decode(negative[None], dec_params)
-            loss = loss + cfg.lambda_clean * losses.bce_with_logits(clean_logits, 0.5, cfg.bce_temperature)
+            loss = loss + cfg.losses.lambda_clean * losses.bce_with_logits(clean_logits, 0.5, cfg.losses.bce_temperature)
         perc = jnp.zeros((), jnp.float32)
-        if spec.phase == 1 and cfg.lambda_perceptual:
+        if spec.phase == 1 and cfg.losses.lambda_perceptual:
             targets = jnp.broadcast_to(target_image, renders.shape)
-            perc = perceptual_loss(cfg.perceptual, renders, targets, vgg_params)
-            loss = loss + cfg.lambda_perceptual * perc
+            perc = perceptual_loss(cfg.losses.perceptual, renders, targets, vgg_params)
+            loss = loss + cfg.losses.lambda_perceptual * perc
         aux = {"bce": bce, "key": key, "perceptual": perc}
         if uses_fidelity(cfg):
             aux["fidelity"], aux["mse_clean"] = fidelity_loss(cfg, renders, reference, fidelity_budget)
-            loss = loss + cfg.lambda_fidelity * aux["fidelity"]
+            loss = loss + cfg.fidelity.weight * aux["fidelity"]
         return loss, aux
 
     return image_loss
@@ -426,7 +415,7 @@ def embed_step(
     new_values = optax.apply_updates(values, updates)
     # Bit accuracy of the renders as they are (no augmentation), with the decoder before this update.
     renders = split_renders(image)
-    logits = decoder_lib.apply_ll2(state.decoder, dwt.ll2(windowed(cfg, renders), cfg.wavelet))
+    logits = decoder_lib.apply_ll2(state.decoder, dwt.ll2(windowed(cfg, renders), cfg.reading.wavelet))
     metrics = {
         "loss": loss,
         "loss_image": aux["loss_image"],

