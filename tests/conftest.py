@@ -19,11 +19,10 @@ import pytest
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # Compilation dominates the suite. XLA's backend optimisation level 0 (of 3) compiles the tests' own small
 # programs fastest, but runs the library's hot programs (renders, train and embedding steps, the decoder:
-# those jitted through xla_cpu.jit_cpu_tuned) far slower: with level 0 everywhere the tiny watermarked run
-# took 365 s to build instead of 122 s. So: level 0 by default, level 1 for the hot programs (set in
-# pytest_configure through xla_cpu.CPU_OPTIONS). Two workers: 12 min 23 s with level 1 everywhere, 11 min 6 s
-# so. Left alone when the user's XLA_FLAGS names a level (the decision is passed to the pytest-xdist workers,
-# which inherit the flags set here).
+# those jitted through xla_cpu.jit_cpu_tuned) far slower, and level 1 everywhere compiles the rest slower.
+# So: level 0 by default, level 1 for the hot programs (set in pytest_configure through
+# xla_cpu.CPU_OPTIONS). Left alone when the user's XLA_FLAGS names a level (the decision is passed to the
+# pytest-xdist workers, which inherit the flags set here).
 OPT_LEVEL_FLAG = "xla_backend_optimization_level"
 _OPT_LEVELS_ENV = "MNERF_TEST_SETS_OPT_LEVELS"
 if _OPT_LEVELS_ENV not in os.environ:
@@ -42,8 +41,8 @@ _CACHE_TO_REMOVE = pytest.StashKey[str]()
 def pytest_configure(config: pytest.Config) -> None:
     """One persistent XLA compilation cache for the whole test run, shared by the pytest-xdist workers.
 
-    Many tests compile the same programs (the embedding's phase-2 step with its 14 augmentations alone took
-    ~35 s to compile on the tiny scene), in both workers and in closures that jit's in-process cache cannot
+    Many tests compile the same programs (the embedding's phase-2 step with its 14 augmentations is slow to
+    compile even on the tiny scene), in both workers and in closures that jit's in-process cache cannot
     reuse. The cache lives in a fresh temporary folder per run (removed at the end), so every run still
     compiles everything once: it saves repeats, it hides nothing. Set ``MNERF_TEST_JAX_CACHE`` to a folder to
     keep it across runs.
@@ -153,20 +152,18 @@ TINY_EMBED = [
     "watermark.schedule.patch_size=16", "watermark.schedule.phase1_steps=40", "watermark.schedule.phase2_steps=40",
     "watermark.checkpoint_every=40", "watermark.module.wm_ranks=4,4,4",
     # 80 steps are enough with the fitted field at 0.3x the paper's rates and the uncalibrated random
-    # decoder of random_decoder (whitening gain ~1e3: tiny changes flip its bits); the CLI tests need a
-    # strong watermark, not a realistic one. With both IDs on every step (watermark.schedule.ids_per_step's default),
-    # 1.0x reached 0.88 bits but cost 3.5 dB of the 18.6 dB clean PSNR; 0.3x: 0.82 bits, 12/12 renders
-    # identified, 1.6 dB (one ID per step at 1.0x: 0.75 bits).
+    # decoder of random_decoder (its large whitening gain: tiny changes flip its bits); the CLI tests need a
+    # strong watermark, not a realistic one, and 0.3x reads it while costing less PSNR than 1.0x.
     "watermark.optim.lr_source_scale=0.3",
-    # The paper's losses, without the procedural preset's quality budget (the figures above were measured so).
+    # The paper's losses, without the procedural preset's quality budget (the rate above was chosen so).
     "watermark.fidelity.psnr=0",
-    # ... and the decoder rate and clean term those figures were measured with (the defaults are 1e-3, 0.3).
+    # ... and the decoder rate and clean term that rate was chosen with (the defaults are 1e-3, 0.3).
     "watermark.optim.lr_decoder=1e-4", "watermark.losses.lambda_clean=0",
-    # Three of the 14 augmentations, filters that barely move a 32-px view's LL2: phase 2's step compiles in
-    # ~18 s instead of ~29 s, and the one-ID-per-step run identified 12/12 test renders at 0.75 bits instead
-    # of 11/12 at 0.66 (photometric subsets such as brightness, contrast, saturation left it at chance: this
-    # decoder's whitening gain makes any colour change a large one). test_augment compiles and differentiates
-    # the policy over all 14; test_embed checks that the empty default hands the step the whole registry.
+    # Three of the 14 augmentations, filters that barely move a 32-px view's LL2: phase 2's step compiles
+    # faster and the watermark still reads (photometric subsets such as brightness, contrast, saturation
+    # leave it at chance: this decoder's whitening gain makes any colour change a large one). test_augment
+    # compiles and differentiates the policy over all 14; test_embed checks that the empty default hands the
+    # step the whole registry.
     "watermark.augment.names=gaussian_blur,box_blur,sharpness",
     # The paper's path, ray-marched with deferred patches and an adapting source (the procedural preset caches
     # its frozen source; tests/test_sample_cache.py embeds that way).

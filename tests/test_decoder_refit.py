@@ -265,7 +265,7 @@ def test_tiny_embed_with_phase_three_and_its_resume(tiny: TinyRuns) -> None:
 def test_a_field_the_time_budget_ends_still_gets_phase_three(
     tiny: TinyRuns, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # On a slower machine the budget ends the field before its schedule does; phase 3 then runs in the
+    # Where steps run slow the budget ends the field before its schedule does; phase 3 then runs in the
     # minutes kept for it (here the clock finds no room for a third field step, and all the time phase 3
     # needs). Its checkpoint lies past the field's schedule, so --resume finds the run finished.
     two_steps = lambda self, now: len(self.step_seconds) < 2  # noqa: E731

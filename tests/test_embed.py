@@ -238,7 +238,7 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
     # The watermarked TensoRF through render_rays (dense budgets, no jitter), the decoder's BCE on LL2 plus
     # Watson, and the phase-2 patch loss (L1 + TV + SSIM) on overlapping 11-px patches of a 13×12 image.
     # (The single-patch path, one render on the graph, is test_deferred_gradient_equals_direct_gradient
-    # [8-8-8]; a second real-renderer case for it cost 15 s of compiling and tested no other code.)
+    # [8-8-8]; a second real-renderer case for it would cost compilation and test no other code.)
     from mnerf_jax.imaging import losses
     from mnerf_jax.reader import decoder
     from mnerf_jax.tensorf import render

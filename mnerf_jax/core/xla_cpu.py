@@ -1,8 +1,8 @@
 """XLA:CPU compiler options for the project's hot jitted functions (renders, steps, the decoder).
 
 XLA:CPU (jax 0.10) hands elementwise+reduce subgraphs, and the ops around convolutions, to YNNPACK fusions.
-For this code they are slower: the renderer's sampled features are materialised (below), and a 3×3
-convolution of 16 × 25² × 64 channels (the decoder's) took 52 ms forward+backward against 23 ms without.
+For this code they are slower: the renderer's sampled features are materialised (below), and the decoder's
+3×3 convolutions run slower with them than without.
 """
 
 from __future__ import annotations
@@ -15,9 +15,8 @@ import jax
 import jax.numpy as jnp
 
 # XLA:CPU (jax 0.10) hands elementwise+reduce subgraphs to YNNPACK fusions, which materialise every
-# gathered [P, C] operand: the density forward of 1 M points took ~1.5 s instead of ~35 ms, and
-# evaluation-mode render_rays (4096 rays, 128^3, alpha mask) 440 ms instead of 215 ms; training steps
-# were about equally fast either way. Disabling them per compilation restores XLA's own fused loops.
+# gathered [P, C] operand and so slow the density forward and evaluation renders (training steps hardly
+# change). Disabling them per compilation restores XLA's own fused loops.
 # A harness may add options here before the first compilation (tests/conftest.py compiles these hot paths
 # at XLA's backend optimisation level 1 and everything else at level 0).
 CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}

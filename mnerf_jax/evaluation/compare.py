@@ -1,6 +1,6 @@
 """Several watermarked runs' evaluations side by side, grouped by the settings they differ in.
 
-A setting's figures move from seed to seed (on the lego CPU hour, bit accuracy by 5–8.5 points), so one run
+A setting's figures move from seed to seed by several points, so one run
 per setting decides little. :func:`compare_runs` reads each run's ``eval-<split>.json`` (``mnerf evaluate``)
 and the ``[watermark]`` section of its ``config.json``, finds the fields whose values differ between the runs
 (less the ones that only pick a seed or a schedule's bookkeeping, :data:`IGNORED_BY_DEFAULT`), and groups the

@@ -150,8 +150,8 @@ def evaluate_watermarked_run(
             "bit_accuracy_png": float(bit_accuracy(bits_png, keys.messages[n]).mean()),
             "bit_accuracy_per_view": bit_accuracy(bits, keys.messages[n]).tolist(),
             # Of the views, the fraction reading each bit right: a render is named (binomial, 16 bits and
-            # 16 keys) only with every bit right, and what kept IDs from being named on lego was one or two
-            # positions each read wrong on most views, not scattered errors (docs/findings.md).
+            # 16 keys) only with every bit right, so one or two positions read wrong on most views keep an ID
+            # from being named where scattered errors would not (docs/experiments/).
             "bit_accuracy_per_bit": (bits == np.asarray(keys.messages[n], np.uint8)[None]).mean(0).tolist(),
             "identification_accuracy": float((ident_n.best_id == n).mean()),
             "verified_identification_accuracy": float((ident_n.decision_by(test) == n).mean()),

@@ -34,9 +34,8 @@ def filter_per_image(images: jax.Array, kernels: jax.Array) -> jax.Array:
     """Correlate each image ``[B, H, W, C]`` with its own kernel ``[B, k, k]`` (odd k), reflect borders.
 
     3×3 kernels: a sum of 9 shifted images, each scaled per image. Larger ones: one depthwise convolution
-    with the batch folded into the channels. For 16 images of 100² on 2 cores, forward+backward (image and
-    kernel gradients): k = 3 43 ms shifted against 71 ms convolved; k = 5 183 against 91 ms; k = 9 1,183
-    against 265 ms (XLA:CPU does not fuse the shifted sums' backward well beyond a few terms).
+    with the batch folded into the channels: shifted sums are the faster for 3×3, but XLA:CPU does not fuse
+    their backward well beyond a few terms.
     """
     b, h, w, c = images.shape
     k = kernels.shape[-1]
@@ -63,8 +62,8 @@ def gaussian_blur_per_image(images: jax.Array, sigma: jax.Array, kernel: int) ->
     ``kernel``-tap filter (``exp(−t²/2σ²)``, normalised), reflect borders.
 
     Separable sums of shifted images, each scaled per image. dm-pix's ``gaussian_blur`` vmapped over the batch
-    (per-image depthwise convolutions) computes the same and took 96 ms forward+backward for 16 images of 100²
-    at 3 taps on 2 cores, against 7 ms this way; it remains the test oracle.
+    (per-image depthwise convolutions) computes the same, far more slowly on XLA:CPU; it remains the test
+    oracle.
     """
     r = kernel // 2
     taps = jnp.arange(-r, r + 1, dtype=images.dtype)
@@ -124,8 +123,7 @@ def median_blur(images: jax.Array, kernel: int) -> jax.Array:
     The value comes from a sorting network of elementwise min / max over the ``kernel²`` shifted images (XLA
     keeps only the comparators the middle output needs); the gradient reaches the neighbour(s) equal to the
     median (shared among ties) through a mask. ``jnp.sort`` over stacked patches, with its own derivative
-    (a gather and a scatter of the permutation), took 445 ms forward+backward for 16 images of 100² at
-    kernel 3 on 2 cores, and its forward alone 390 ms.
+    (a gather and a scatter of the permutation), is far slower, forward and backward.
     """
     views = _neighbours(images, kernel)
     values = list(views)

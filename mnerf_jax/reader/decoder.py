@@ -202,7 +202,7 @@ def filterbank_init(variables: Mapping[str, Any]) -> Variables:
 @functools.cache
 def _compiled_init(bits: int, channels: int, depth: int) -> Any:
     """One compiled init per architecture (instead of dispatching each initialiser separately), kept: the
-    compilation takes ~2 s on a CPU and a run's setup or a checkpoint check may init several times."""
+    compilation takes seconds and a run's setup or a checkpoint check may init several times."""
     return jax.jit(HiddenDecoder(bits=bits, channels=channels, depth=depth).init)
 
 
@@ -265,9 +265,9 @@ def calibrate_batch_norm(variables: Mapping[str, Any], ll2: jax.Array) -> Variab
     """Set every BatchNorm's running mean and variance to the batch statistics of ``ll2 [B, h, w, 3]``.
 
     A random-init decoder keeps BatchNorm's initial statistics (mean 0, variance 1), so in eval mode its
-    activations are not normalised and its outputs barely vary between images (std ~1e-3 measured on the
-    procedural scene): whitening then multiplies them by ~4e3, and every optimizer step on the decoder moves
-    the logits by ~1. Calibrated statistics make eval mode behave like the network as initialised.
+    activations are not normalised and its outputs barely vary between images: whitening then scales them
+    up by orders of magnitude, and every optimizer step on the decoder moves the logits by ~1. Calibrated
+    statistics make eval mode behave like the network as initialised.
     """
     old = variables["batch_stats"]
     _, new = apply_ll2_train(variables, ll2)

@@ -8,16 +8,14 @@ agreement pattern ``ε_i = +1`` where the decoded bit ``ℓ_i > 0`` equals the k
 That holds for a decoder fixed before the keys were drawn (the shipped one, a ``--decoder`` file). Phase 2 of
 the embedding trains the decoder with the keys, and such a decoder can be drawn towards them on clean images
 too: then the p-values are nominal, and the clean renders' false-detection rate that ``mnerf evaluate``
-measures is the figure to trust (lego CPU hour, 16 bits, two seeds: none, and 1.0 % binomial / 2.5 % sign-flip
-against a nominal 0.1 %; 48 bits: 4.0 % / 21 %).
+reports is the figure to trust.
 
 - **binomial** (the count of agreeing bits ``k``): ``p = P[Bin(L, ½) ≥ k]``.
 - **sign_flip** (the agreement weighted by confidence, ``S = Σ_i w_i ε_i`` with ``w_i ∝ |ℓ_i|``):
   ``p = P[Σ_i w_i η_i ≥ S]`` for fair signs ``η``, computed exactly (:func:`sign_flip_tail`). It is the same
   randomisation test with a statistic that lets a doubtful bit count for less, so a message read right but
   for its least confident bit or two still passes a threshold that the count alone would miss. With equal
-  weights it is the binomial test. Measured on the lego CPU-hour run's 3,200 saved PNGs (16 IDs × 16 bits,
-  threshold 1e-3 after Bonferroni): the right ID named for 45.8 % of renders against 26.1 % by the count.
+  weights it is the binomial test.
 
 Both are exact for one key; over ``N`` keys the caller corrects by Bonferroni (``min(1, N·p)``). Neither can
 go below ``2^-L``: with 16 bits and 16 keys the corrected p-value is at least 2.4e-4.
@@ -33,7 +31,7 @@ ID_TESTS = ("binomial", "sign_flip")
 # Largest total weight Σ w_i of the sign-flip statistic: the exact null distribution is an array of
 # 2·Σw + 1 probabilities, updated once per bit. Logits are scaled to integers with this much resolution
 # (at 16 bits the largest |ℓ| maps to 512); the rounding only changes the statistic, never the test's
-# validity, since the weights are still a function of |ℓ| alone. About 0.3 ms a 16-bit message.
+# validity, since the weights are still a function of |ℓ| alone.
 MAX_TOTAL_WEIGHT = 1 << 13
 
 

@@ -257,12 +257,10 @@ class SampleBudgets:
 REFIT_AFTER = (8, 32, 100)  # steps into a phase at which budgets may shrink ...
 REFIT_EVERY = 250  # ... and then every this many steps ...
 REFIT_EVERY_LARGE = 25  # ... or this many while a budget has LARGE_BUDGET slots or more
-# From this size on a step spends about a second on colour (2-core CPU, 1 M colour slots: the MLP alone
-# ~1.1 s forward+backward), so a compilation (~3.5 s) is repaid within a few dozen steps. The colour count
-# falls steeply while a field sharpens (lego at 800^2, 128^3: ~930 k per 4096 rays at step 60, ~120 k at
-# step 300), and refits only at REFIT_AFTER / REFIT_EVERY kept the 1 M budget until step 250.
-# Since render.colour_in_chunks skips chunks past the count, colour slack costs far less (compaction and
-# padding only), so these refits now save less per step than when the rule was set.
+# From this size colour dominates a step, so a recompilation is repaid within a few dozen steps; the colour
+# count falls steeply while a field sharpens, which refits only at REFIT_AFTER / REFIT_EVERY would miss.
+# render.colour_in_chunks skips chunks past the count, so colour slack costs little and these refits save
+# less.
 LARGE_BUDGET = 1 << 19
 
 

@@ -102,10 +102,9 @@ _COS_COEFFS = (4.166664568298827e-2, -1.388731625493765e-3, 2.443315711809948e-5
 def sincos(x: Array) -> tuple[Array, Array]:
     """``(sin x, cos x)`` elementwise in float32, absolute error <= 1e-7 for ``|x| <= 1e4``.
 
-    XLA:CPU's ``sin`` is not vectorised: ``sin`` of 27 M floats took 112 ms here against 22 ms for
-    ``exp``, and the positional encoding was most of the colour MLP's forward pass. This shares one
-    range reduction between sin and cos and vectorises (7x faster for both; the derivative reuses
-    the values). Beyond ``|x| ~ 5e4`` the reduction loses accuracy; features never get there.
+    XLA:CPU's ``sin`` is not vectorised, which made the positional encoding most of the colour MLP's
+    forward pass. This shares one range reduction between sin and cos and vectorises (the derivative
+    reuses the values). Beyond ``|x| ~ 5e4`` the reduction loses accuracy; features never get there.
     """
     q = jnp.round(x * (2.0 / math.pi))
     r = ((x - q * _PIO2[0]) - q * _PIO2[1]) - q * _PIO2[2]
@@ -162,8 +161,8 @@ def mlp_inputs(features: Array, viewdirs: Array, cfg: ModelConfig) -> Array:
 def narrow_matmul(x: Array, w: Array) -> Array:
     """``x [P, K] @ w [K, N]`` for a few output columns (N <= 4), one matrix-vector product each.
 
-    XLA:CPU's matrix product is slow with 3 output columns: the colour MLP's last layer took 254 ms
-    forward+backward at 1 M samples, against 100 ms as three matrix-vector products (1/5 of the MLP).
+    XLA:CPU's matrix product is slow with 3 output columns (the colour MLP's last layer); matrix-vector
+    products are not.
     """
     if w.shape[-1] > 4:
         return x @ w

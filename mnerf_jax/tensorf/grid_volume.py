@@ -4,8 +4,8 @@
 projected by a basis matrix first) equal gathering the factors (``grids.sample_vm``) and summing; what
 differs is the backward pass. Gathering back-propagates ``[P, C]`` cotangents into every plane and line;
 here, while the grid is small enough per point, the cotangent is splatted into a dense volume (8 row
-scatter-adds) and contracted with the factors by matrix products, which was faster on the 2-core CPU
-(``scripts/bench_render.py --only density``, README).
+scatter-adds) and contracted with the factors by matrix products, which is faster on XLA:CPU
+(``scripts/bench_render.py --only density`` compares them).
 """
 
 from __future__ import annotations
@@ -126,20 +126,8 @@ def sample_vm_sum(grid: VMGrid, xyz: Array, method: str = "auto") -> Array:
       scalar, nothing ``[P, C]``-sized is built.
     - ``"auto"`` (default): the gather forward (faster without a gradient) and, while the grid has
       at most ``VOLUME_CELLS_PER_POINT`` cells per point, the volume's backward pass (its cost follows
-      the cells, the gathers' the points).
-
-    Measured with ``scripts/bench_render.py --only density`` (2-core CPU, rank 16 x 3, points along
-    random rays, best of 3), forward / forward+backward in ms; "auto" splats by row scatter-adds
-    (``splat_volume``):
-
-    ==================  ============  ============  ============
-    grid, points        gather        volume        auto
-    ==================  ============  ============  ============
-    128^3, 0.52 M       5 / 142       15 / 73       6 / 31
-    128^3, 1.57 M       19 / 383      37 / 197      28 / 71
-    300^3, 0.52 M       11 / 174      35 / 194      13 / 166
-    300^3, 1.57 M       26 / 486      72 / 346      24 / 200
-    ==================  ============  ============  ============
+      the cells, the gathers' the points). "auto" splats by row scatter-adds (``splat_volume``);
+      ``scripts/bench_render.py --only density`` times the three.
     """
     if method == "auto":
         cells = math.prod(vm_resolution(grid))
@@ -167,7 +155,7 @@ def splat_volume(values: Array, xyz: Array, resolution: tuple[int, int, int]) ->
 
     Eight row scatter-adds (one per cube corner) of ``P`` rows of ``K`` floats into the flattened
     volume. (XLA:CPU's windowed scatters, ``[2, 2, 2, K]`` as ``jax.linear_transpose`` of
-    ``sample_volume`` gives, or ``[2, K]`` over the adjacent z taps, measured 1.5-3x slower.)
+    ``sample_volume`` gives, or ``[2, K]`` over the adjacent z taps, are slower.)
     """
     xyz = jax.lax.stop_gradient(xyz)
     (x0, wx0, wx1), (y0, wy0, wy1), (z0, wz0, wz1) = (

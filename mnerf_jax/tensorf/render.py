@@ -17,12 +17,8 @@ last in ray-major order) and reports ``*_overflow > 0``; ``budgets.BudgetPolicy`
 ``chunked.render_rays_exact`` pick budgets that grow on overflow and re-run, so no sample is silently lost.
 Whole images: ``chunked.render_image``; the alpha mask itself, the aabb shrink and ray filtering:
 ``alpha_mask``. A budget of ``None``
-evaluates densely (the reference path).
-
-Measured with ``scripts/bench_render.py`` (VM-192 field at 128^3 that is empty except an opaque ball,
-4096 rays x 443 samples, 2-core CPU shared with other jobs, best of 3): compaction vs dense evaluation
-was 5.5x faster for a training step and 7.7x for evaluation without the alpha mask, and 12x / 20x
-with it (where dense evaluation gains nothing from the mask).
+evaluates densely (the reference path); compaction is several times faster than dense evaluation,
+more so with the alpha mask (``scripts/bench_render.py``).
 
 Points reach the field functions normalised to [-1, 1] over ``geometry.aabb``.
 """
@@ -98,8 +94,8 @@ def exclusive_cumsum(x: Array, block: int = 16) -> Array:
     """Exclusive prefix sum along the last axis, ``y_i = Σ_{j<i} x_j``, by blocked matrix products.
 
     Within blocks of ``block`` samples the sum is a product with a strictly upper-triangular matrix,
-    and block offsets another one. On XLA:CPU this was 5-10x faster than ``jnp.cumsum`` (lowered to
-    an associative scan whose fusion with the surrounding exps recomputes partial sums).
+    and block offsets another one. On XLA:CPU this is several times faster than ``jnp.cumsum`` (lowered
+    to an associative scan whose fusion with the surrounding exps recomputes partial sums).
     """
     *lead, n = x.shape
     nb = -(-n // block)
@@ -114,10 +110,9 @@ def composite_cumsum(sigma: Array, dists: Array, distance_scale: Array | float) 
     """Weights and transmittance from a prefix sum of optical depth (the hot path).
 
     ``τ = σ Δt s``, ``T_i = exp(-Σ_{j<i} τ_j)``, ``w_i = (1 - exp(-τ_i)) T_i``: TensoRF's cumulative
-    product of ``1 - α + 1e-10`` up to that 1e-10. On the 2-core CPU, 4096 x 443 samples,
-    forward+backward: 14.5 ms against 56 ms for ``composite_scan`` (forward alone 6.3 vs 3.1 ms), and
-    25-40 ms for this formula with ``jnp.cumsum`` (``scripts/bench_render.py``, best of 5 on a shared
-    machine). Training needs both passes, so this is the hot path; the scan is the reference.
+    product of ``1 - α + 1e-10`` up to that 1e-10. Forward+backward it is faster than ``composite_scan``
+    and than this formula with ``jnp.cumsum`` (``scripts/bench_render.py``); training needs both passes,
+    so this is the hot path; the scan is the reference.
 
     Args:
       sigma: ``[R, N]`` densities (>= 0).
@@ -192,7 +187,7 @@ def compact(mask: Array, budget: int) -> tuple[Array, Array]:
     Returns ``(idx [budget] int32, count)``: the first ``budget`` True positions in increasing order,
     padded with ``M`` (one past the end: clamp before gathering, scatter into ``M + 1`` slots), and the
     number of True entries. A running count and one scatter (no ``jnp.nonzero``, whose cumulative
-    sums dominated on CPU: ~40 ms vs ~5 ms for 1.8 M entries).
+    sums dominate on CPU).
     """
     m = mask.shape[0]
     count = _inclusive_count(mask)
@@ -227,9 +222,9 @@ def colour_in_chunks(
 
     The buffer is evaluated in chunks of ``chunk`` rows (``lax.scan``), and a chunk past ``count``
     holds only padding: ``lax.cond`` skips it, forward and backward. So a step pays for the samples
-    that need colour, rounded up to a chunk, not for its static budget: the colour count falls ~8x
-    over the first few hundred steps of a fit (and is 0 for the first ~20), while a smaller budget
-    costs a compilation. Buffers of at most one chunk, or not a multiple of it, go in one call.
+    that need colour, rounded up to a chunk, not for its static budget: the colour count falls steeply
+    over the first few hundred steps of a fit (and is 0 at first), while a smaller budget costs a
+    compilation. Buffers of at most one chunk, or not a multiple of it, go in one call.
     """
     b = xyz.shape[0]
     if b <= chunk or b % chunk:

@@ -227,8 +227,8 @@ def deferred_grad(
     image_grad = jax.value_and_grad(image_loss_fn, argnums=(0, 1), has_aux=True)
     if n == 1:
         # One patch covers the view: the graph-free render would only repeat that patch's forward pass,
-        # so render once on the graph and pull the image gradient back through it (the same gradient; on the
-        # demo scene's 64-px views with 4 IDs a step took 0.82 s before, the separate render 0.34 s of it).
+        # so render once on the graph and pull the image gradient back through it (the same gradient, one
+        # render fewer).
         idx, k = layout_index[0], keys[0]
         render_view = lambda p: render_fn(p, gather_rays(rays, idx), k)
         rgb, pullback, stats = jax.vjp(render_view, params, has_aux=True)  # one patch: its stats are the max

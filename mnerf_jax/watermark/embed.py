@@ -238,10 +238,9 @@ def embed(
                          f"{cfg.schedule.patch_size}) are below SSIM's {window}×{window} window")  # fmt: skip
 
     store = CheckpointStore(out, keep=max(cfg.keep_checkpoints, 1))
-    # A fitted field keeps most of its in-mask samples for colour (91 % on the tiny test scene), so the colour
-    # buffer starts as large as the density one: the first step cannot overflow (a redo is a compilation).
-    # Both are fitted after that one step: a step at the full budgets cost 9-16 s on the demo scene against
-    # 0.7 s fitted, so waiting five steps for a better estimate cost more than the overflow it may save.
+    # A fitted field keeps most of its in-mask samples for colour, so the colour buffer starts as large as the
+    # density one: the first step cannot overflow (a redo is a compilation). Both are fitted after that one
+    # step: a step at the full budgets costs many fitted steps, more than a later overflow would.
     policy = budgets.BudgetPolicy(colour_fraction=1.0, fresh_calls=1)
     n_rays, n_samples = layout.size * layout.size, source.geometry.n_samples
     try:

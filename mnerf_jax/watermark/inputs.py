@@ -54,9 +54,8 @@ def clean_references(source: runs.LoadedRun, split: Any, progress: bool = False)
     """The clean model's renders of every training view, ``[V, H, W, 3]`` float16 (the quality budget's
     reference; rendered once, without sample jitter, as evaluation renders it).
 
-    The embedding's renders jitter their samples; a clean field's jittered and unjittered renders differ by
-    55-62 dB PSNR (lego at 100 px, the demo scene), far inside any useful budget. float16 holds [0, 1] to
-    2.4e-4 and halves the memory (100 views at 800 px: 384 MB).
+    The embedding's renders jitter their samples; a clean field's jittered and unjittered renders differ far
+    less than any useful budget allows. float16 holds [0, 1] to 2.4e-4 and halves the memory.
     """
     bar = tqdm(total=len(split.cameras), disable=not progress, desc="clean renders", unit="view",
                dynamic_ncols=True)  # fmt: skip

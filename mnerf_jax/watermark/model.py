@@ -9,10 +9,10 @@ For watermark ID ``n`` (an integer in ``[0, N)``)::
     c̃(x)  = MLP_Fea(G_c(x), d; last layer += w'(x) · out_extra)
 
 ``Emb`` and ``Mod`` start at torch's default init, so every ID starts with its own, unrelated ``(γ_n, β_n)``
-(magnitudes ~0.3). A FiLM around the identity (``γ = 1 + Δγ``, ``Δγ`` small) was measured to leave the IDs
-nearly alike for the whole of a short embedding: the shared part of ``w'`` then learns one message for all
-IDs. ``out_extra`` starts at small noise (1e-3), so the untrained watermarked model renders what the
-TensoRF it came from renders (to within one 8-bit level).
+(magnitudes ~0.3). A FiLM around the identity (``γ = 1 + Δγ``, ``Δγ`` small) leaves the IDs nearly alike
+for the whole of a short embedding: the shared part of ``w'`` then learns one message for all IDs.
+``out_extra`` starts at small noise (1e-3), so the untrained watermarked model renders what the TensoRF it
+came from renders (to within one 8-bit level).
 
 ``(γ_n, β_n)`` depend on the ID only, so they are computed once per image (:func:`condition`) and passed to
 the renderer as ``cond``; the colour function reads them per sample.
@@ -102,12 +102,8 @@ def ids_per_step_of(cfg: WatermarkConfig, num_ids: int | None = None) -> int:
 
 # Steps per ID of the automatic schedule (watermark.schedule.phase1_steps / phase2_steps = -1), for at least
 # AUTO_SCHEDULE_MIN_IDS IDs: 4 IDs get 200 + 800 steps (the paper's ~1,000), 16 IDs 800 + 3,200. More IDs
-# need more steps even when every ID renders on every step: lego 1/8, 16 IDs x 16 bits, on a GPU, 62.4 %
-# bits after 1,000 steps and 95.1 % after 4,000; the demo scene, 16 IDs, 59.3 % after 1,000 (4 IDs: 94 %).
-# Not fewer to fit a CPU hour: lego, 16 IDs, 2,200 steps (61 min on 2 cores) read 84.9 %, the right ID for
-# 72 % of renders, and 3.5 % of clean renders were named as an ID. The hour is better spent with phase 1 cut
-# to 100 steps (configs/embed_cpu.toml; 100 + 2,000 read 91.5 %, the right ID for 90 %, none claimed); the
-# GPU figures above were measured with this schedule, so it stays until 100 + 3,200 is measured.
+# need more steps even when every ID renders on every step. A short budget is better spent cutting phase 1
+# (configs/embed_cpu.toml) than shrinking this schedule (docs/experiments/).
 AUTO_PHASE1_STEPS_PER_ID = 50
 AUTO_PHASE2_STEPS_PER_ID = 200
 AUTO_SCHEDULE_MIN_IDS = 4
@@ -327,8 +323,7 @@ def film_logits(params: Params, cond: Any, xyz: Array, cfg: WatermarkConfig) -> 
     :func:`condition_many` cond, at normalised ``xyz [P, 3]``.
 
     ``(γ_k ⊙ w + β_k) · E = w · (diag(γ_k) E) + β_k · E``: one ``[P, C] @ [C, 3K]`` product instead of the
-    ``[P, K, C]`` features of :func:`extra_features` and their cotangent (16 IDs at 115 k samples: 176 MB
-    each way).
+    ``[P, K, C]`` features of :func:`extra_features` and their cotangent (K times the memory, each way).
     """
     w = raw_features(params, xyz, cfg)  # [P, C]
     out_extra = params["mlp"]["out_extra"]  # [C, 3]

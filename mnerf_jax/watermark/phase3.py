@@ -8,7 +8,7 @@ object-centred scenes), then trains the decoder's weights alone on it: the messa
 phase 2 on every render, and ``phase3_lambda_clean`` · BCE against ½ on unwatermarked images (the training
 views' photographs, and the clean model's renders of every view used); half of each batch is rounded to 8
 bits as a saved PNG is, and the run's phase-2 augmentations apply when it has them. The field, and so the
-PSNR, does not change. Measured on lego: docs/findings.md, "The decoder refitted on the finished field".
+PSNR, does not change (results: docs/experiments/).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from mnerf_jax.watermark import run as wm_run
 
 PyTree = Any
 # A batch holds phase3_batch renders and a quarter as many unwatermarked images (8 per 32, as in the sweep of
-# docs/findings.md, "The decoder refitted on the finished field").
+# docs/experiments/).
 NEGATIVES_PER_BATCH_DIVISOR = 4
 VIEW_DENSITIES = get_args(ViewDensity)  # novel_cameras' spreads of the elevation
 
@@ -108,9 +108,9 @@ def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_tr
     (:func:`novel_cameras`, seeded by ``watermark.seed``), rendered as evaluation renders them (no jitter).
     The negatives: ``ground_truth [V, H, W, 3]`` (the training images) and, given the run it was embedded
     into (``clean_model``, a loaded TensoRF run), its renders of the same views: an unwatermarked render is
-    what a verifier must answer "no watermark" for, and it lies far nearer the watermarked renders (43 dB on
-    lego) than the photographs do (33 dB). With the photographs alone the refitted decoder claimed 3.5 % of
-    the clean renders on lego (one H200 run, seed 1). ``clean_renders [V, H, W, 3]``: the clean model's
+    what a verifier must answer "no watermark" for, and it lies far nearer the watermarked renders than the
+    photographs do; with the photographs alone the refitted decoder claims clean renders as IDs.
+    ``clean_renders [V, H, W, 3]``: the clean model's
     renders of ``cameras`` when the caller has them already (the quality budget's references), so that only
     the novel views are rendered again (a clean render costs about as much as all 16 IDs' renders of a view:
     the geometry pass dominates). ``training_renders``: every ID's renders of ``cameras``, ``{ID: [V, H, W,
@@ -150,7 +150,7 @@ def refit_rate(cfg: WatermarkConfig, step: Any, total: Any) -> jax.Array:
     a linear warm-up over the first 10 % (at least one step), then cosine decay to 0 at ``total`` (optax's
     ``warmup_cosine_decay_schedule``, with the length as data so that :func:`refit_decoder` can size it to
     the minutes left). The decoder's Adam state starts empty, and a full-rate start on a fitted decoder first
-    unlearned it (lego: 90.7 → 89.4 % bits after 500 steps at 1e-3 without warm-up)."""
+    unlearns it."""
     s = jnp.asarray(step, jnp.float32)
     n = jnp.maximum(jnp.asarray(total, jnp.float32), 1.0)
     warm = jnp.maximum(jnp.floor(n / 10.0), 1.0)
@@ -190,7 +190,7 @@ def make_refit_step(
     """
     batch = int(cfg.phase3.batch)
     n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.phase3.lambda_clean else 0
-    window, background, _ = read_window.of_config(cfg.reading)  # phase 3 trains on the centred window (findings)
+    window, background, _ = read_window.of_config(cfg.reading)  # phase 3 trains on the centred window
     tx = refit_optimizer(cfg)
 
     def prepare(key: jax.Array, images: jax.Array) -> jax.Array:
@@ -250,7 +250,7 @@ def refit_decoder(
 
     ``seconds_left()`` (the time budget's, when it has one): after :data:`SIZING_STEPS` timed steps the
     schedule is shortened to the steps that fit in :data:`SIZING_MARGIN` of it, so that its warm-up and
-    cosine decay end inside the budget, not cut off at a high rate on a slower machine. Without it, or when
+    cosine decay end inside the budget, not cut off at a high rate where steps run slower. Without it, or when
     all the steps fit, the schedule is ``phase3_steps`` long and the run deterministic in
     ``watermark.seed``. Returns the new variables and ``{"steps", "scheduled", "loss"}`` (steps taken, the
     schedule's length, the last step's loss).

@@ -256,8 +256,8 @@ def message_loss(
     The term is the mean BCE; with ``id_loss_power`` p > 0 and K > 1 its gradient to the renders is that of
     the mean of the K BCEs weighted by ``BCE_k^p`` (held constant; the renders read worst weigh most), while
     the decoder's stays the plain mean's, and so does the term's value. Weighting the decoder's gradient too
-    taught it the weak IDs' keys on barely marked renders: 3.5 % of clean renders were claimed (lego, 16
-    IDs, the CPU hour). This costs a second decoder pass.
+    taught it the weak IDs' keys on barely marked renders, so it claimed clean renders. This costs a second
+    decoder pass.
 
     The key term (zero unless ``lambda_key`` > 0, which needs every ID's message ``keys [N, L]`` and the
     renders' ``ids [K]``) is :func:`losses.key_cross_entropy` on the same logits, its gradient to both
@@ -365,7 +365,7 @@ def make_image_loss(
 
 
 # The top-level step takes xla_cpu.xla_compiler_options(), as the fit's step does: without them XLA:CPU routes
-# the renders' sampled-feature arithmetic through YNNPACK fusions (lego 1/8, 16 IDs: 1.87 -> 1.49 s a step).
+# the renders' sampled-feature arithmetic through YNNPACK fusions, which are slower here.
 @xla_cpu.jit_cpu_tuned(static_argnames=("spec",))
 def embed_step(
     state: EmbedState,

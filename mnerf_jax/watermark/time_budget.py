@@ -1,17 +1,16 @@
 """Ending an embedding within a wall-clock budget (``watermark.time_budget.minutes``, ``mnerf embed
 --time-budget``).
 
-A step's cost depends on the machine and the day (the lego protocol's phase-2 step took 1.57-1.71 s on the
-same 2-core CPU on different days) and grows during a run as the sample buffers grow to the largest view's
-counts (a timing of the first steps read 1.22 s where the run then took 1.6-1.8 s), so a step count fixed in
-advance either overruns the time or leaves part of it unused. With a budget, the loop runs the configured
-schedule and, before each step, stops when that step and the last checkpoint would no longer end inside the
-budget, judging a step's cost by the steps just run. The field's schedule is not resized: the learning rates
-decay over the configured length, so a field the budget stops after N steps is exactly the first N steps of
-the unbudgeted run (``--steps N`` repeats it), and without phase 3 ``--resume`` continues it. With phase 3
-(``watermark.phase3.steps``) the loop keeps ``phase3_reserve_min`` of the budget for it and phase 3 runs on
-whatever field the budget left, its own schedule sized to the time left (``decoder_refit.refit_decoder``):
-on a slower machine the hour then ends with a shorter field and a shorter phase 3, not without phase 3.
+A step's cost depends on the machine and the day, and grows during a run as the sample buffers grow to the
+largest view's counts, so a step count fixed in advance either overruns the time or leaves part of it unused.
+With a budget, the loop runs the configured schedule and, before each step, stops when that step and the last
+checkpoint would no longer end inside the budget, judging a step's cost by the steps just run. The field's
+schedule is not resized: the learning rates decay over the configured length, so a field the budget stops
+after N steps is exactly the first N steps of the unbudgeted run (``--steps N`` repeats it), and without phase
+3 ``--resume`` continues it. With phase 3 (``watermark.phase3.steps``) the loop keeps ``phase3.reserve_min``
+of the budget for it and phase 3 runs on whatever field the budget left, its own schedule sized to the time
+left (``phase3.refit_decoder``): where steps run slower the budget then ends with a shorter field and a
+shorter phase 3, not without phase 3.
 """
 
 from __future__ import annotations
@@ -21,7 +20,7 @@ import statistics
 from collections.abc import Sequence
 
 # Seconds kept free: the process's start before the budget's clock (imports, loading the run), the end after
-# the loop, and one recompilation (sample buffers grown after an overflow: ~40 s on the lego protocol).
+# the loop, and one recompilation (sample buffers grown after an overflow).
 RESERVE_S = 45.0
 # Recent steps whose median is the next step's expected cost.
 RECENT_STEPS = 10

@@ -63,7 +63,7 @@ def init_encoder(key: jax.Array, bits: int, channels: int = 32, depth: int = 3) 
 
 @functools.cache
 def _compiled_init(bits: int, channels: int, depth: int) -> Any:
-    """One compiled init per architecture, kept (a compilation takes ~2 s on a CPU)."""
+    """One compiled init per architecture, kept (a compilation takes seconds)."""
     module = LL2Encoder(channels=channels, depth=depth)
     return jax.jit(lambda k: module.init(k, jnp.zeros((1, 8, 8, 3)), jnp.zeros((1, bits)), train=False))
 

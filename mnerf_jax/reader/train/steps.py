@@ -58,8 +58,8 @@ def _all_finite(tree: Any) -> jax.Array:
 def _unless_finite(grads: Any, new: dict[str, Any], old: dict[str, Any]) -> dict[str, Any]:
     """``new`` where every gradient is finite, else ``old`` (the step is skipped).
 
-    A rare batch can give a non-finite gradient through an augmentation (seen once in a 16-bit run: Gaussian
-    blur followed by the HSV saturation change); one such step must not poison the weights.
+    A rare batch can give a non-finite gradient through an augmentation (e.g. Gaussian blur followed by the
+    HSV saturation change); one such step must not poison the weights.
     """
     ok = _all_finite(grads)
     return jax.tree.map(lambda n, o: jnp.where(ok, n, o), new, old)
