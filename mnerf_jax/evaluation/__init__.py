@@ -1,1 +1,2 @@
-"""TODO."""
+"""Evaluating fitted and watermarked runs: bit accuracy, identification and quality on a split, attacks,
+reports and plots, runs compared side by side."""

@@ -12,16 +12,14 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from mnerf_jax.tensorf import raymarch
-
-if TYPE_CHECKING:
-    from mnerf_jax.tensorf.sampler import RaySet
+from mnerf_jax.tensorf.sampler import RaySet
 
 Array = jax.Array
 
