@@ -45,39 +45,59 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     from mnerf_jax.watermark import step as wm_step
 
     source = embed.load_source(run)
-    config = embed.resolve_config(source, None, [f"watermark.schedule.patch_size={patch}"], num_ids=4, bits=16)
+    config = embed.resolve_config(
+        source, None, [f"watermark.schedule.patch_size={patch}"], num_ids=4, bits=16
+    )
     cfg = config.watermark
     cams = source.load_scene(None, splits=("train",)).split("train").cameras
     k = size / cams.width
     height = int(round(cams.height * k))
-    cams = dataclasses.replace(cams, fx=cams.fx * k, fy=cams.fy * k, cx=cams.cx * k, cy=cams.cy * k,
-                               width=size, height=height)  # fmt: skip
+    cams = dataclasses.replace(
+        cams, fx=cams.fx * k, fy=cams.fy * k, cx=cams.cx * k, cy=cams.cy * k, width=size, height=height
+    )
     rays_o, rays_d = camera_rays(cams, 0)
-    layout = deferred.patch_layout(height, size, deferred.tiling_patch_size(height, size, cfg.schedule.patch_size, 11))
+    layout = deferred.patch_layout(
+        height, size, deferred.tiling_patch_size(height, size, cfg.schedule.patch_size, 11)
+    )
     index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
     root = jax.random.key(0)
     params = watermark.add_watermark(jax.random.fold_in(root, 1), source.params, cfg, 4)
     dec = decoder_lib.init_decoder(jax.random.PRNGKey(0), 16)
     dec_vars = dict(dec)
     tx = wm_step.make_optimizer(cfg, config.train.adam_b1, config.train.adam_b2)
-    state = wm_step.EmbedState(params=params, decoder=dec_vars,
-                             opt_state=tx.init({"field": params, "decoder": dec_vars["params"]}),
-                             step=jnp.zeros((), jnp.int32), key=jax.random.fold_in(root, 2))  # fmt: skip
+    state = wm_step.EmbedState(
+        params=params,
+        decoder=dec_vars,
+        opt_state=tx.init({"field": params, "decoder": dec_vars["params"]}),
+        step=jnp.zeros((), jnp.int32),
+        key=jax.random.fold_in(root, 2),
+    )
     keys = jnp.asarray(np.random.default_rng(0).integers(0, 2, (4, 16)), jnp.float32)  # the 4 IDs' messages
     batch = {
-        "rays_o": jnp.asarray(rays_o), "rays_d": jnp.asarray(rays_d),
+        "rays_o": jnp.asarray(rays_o),
+        "rays_d": jnp.asarray(rays_d),
         "target": jnp.full((height * size, 3), 0.5, jnp.float32),
-        "message": keys[1:2], "id": jnp.asarray([1], jnp.int32), "keys": keys,
-    }  # fmt: skip
+        "message": keys[1:2],
+        "id": jnp.asarray([1], jnp.int32),
+        "keys": keys,
+    }
     geometry = source.geometry
     policy = budgets.BudgetPolicy()
     site, n_rays, n_samples = "bench", layout.size**2, geometry.n_samples
 
     def spec() -> wm_step.StepSpec:
         db, cb = policy.budgets(site, n_rays, n_samples)
-        return wm_step.StepSpec(model=config.model, wm=cfg, adam_b1=config.train.adam_b1,
-                              adam_b2=config.train.adam_b2, phase=2, height=height, width=size,
-                              density_budget=db, colour_budget=cb)  # fmt: skip
+        return wm_step.StepSpec(
+            model=config.model,
+            wm=cfg,
+            adam_b1=config.train.adam_b1,
+            adam_b2=config.train.adam_b2,
+            phase=2,
+            height=height,
+            width=size,
+            density_budget=db,
+            colour_budget=cb,
+        )
 
     total = jnp.asarray(wm_step.total_steps(cfg), jnp.int32)
     base = _rss_mb()
@@ -85,8 +105,9 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
     if mode == "deferred":
         done = 0
         while done < steps:
-            new_state, metrics = wm_step.embed_step(state, geometry, batch, index, owner, None, total,
-                                                    spec=spec())  # fmt: skip
+            new_state, metrics = wm_step.embed_step(
+                state, geometry, batch, index, owner, None, total, spec=spec()
+            )
             counts = {k: int(metrics[k]) for k in ("density_count", "colour_count")}
             if not policy.update(site, counts, n_rays, n_samples):
                 state, done = new_state, done + 1
@@ -103,17 +124,27 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
         s = spec()
         fn = wm_step.render_patch_fn(s, geometry, batch["id"])
         target = batch["target"].reshape(height, size, 3)
-        image_loss = wm_step.make_image_loss(s, jax.random.key(4), batch["message"], target, dec_vars,
-                                             keys=batch["keys"], ids=batch["id"])  # fmt: skip
+        image_loss = wm_step.make_image_loss(
+            s, jax.random.key(4), batch["message"], target, dec_vars, keys=batch["keys"], ids=batch["id"]
+        )
 
         @jax.jit
         def direct(params: dict, dec_params: dict) -> tuple:
             def objective(p: dict, d: dict) -> jax.Array:
                 loss, _ = deferred.direct_objective(
-                    fn, image_loss, lambda r, t: wm_step.patch_loss(cfg, r, t), p, d,
-                    (batch["rays_o"], batch["rays_d"]), batch["target"], index, owner, jax.random.key(5),
-                    height, size,
-                )  # fmt: skip
+                    fn,
+                    image_loss,
+                    lambda r, t: wm_step.patch_loss(cfg, r, t),
+                    p,
+                    d,
+                    (batch["rays_o"], batch["rays_d"]),
+                    batch["target"],
+                    index,
+                    owner,
+                    jax.random.key(5),
+                    height,
+                    size,
+                )
                 return loss
 
             return jax.grad(objective, argnums=(0, 1))(params, dec_params)
@@ -121,9 +152,17 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
         for _ in range(steps):
             jax.block_until_ready(direct(state.params, dec_vars["params"]))
     seconds = time.perf_counter() - start
-    return {"mode": mode, "image": f"{height}x{size}", "pixels": height * size, "patch": layout.size,
-            "patches": int(layout.index.shape[0]), "steps": steps, "seconds": round(seconds, 2),
-            "base_rss_mb": round(base), "peak_rss_mb": round(_rss_mb())}  # fmt: skip
+    return {
+        "mode": mode,
+        "image": f"{height}x{size}",
+        "pixels": height * size,
+        "patch": layout.size,
+        "patches": int(layout.index.shape[0]),
+        "steps": steps,
+        "seconds": round(seconds, 2),
+        "base_rss_mb": round(base),
+        "peak_rss_mb": round(_rss_mb()),
+    }
 
 
 def main() -> None:
@@ -142,8 +181,19 @@ def main() -> None:
         return
     for mode in args.modes:
         for size in args.sizes:
-            cmd = [sys.executable, __file__, "--run", args.run, "--patch", str(args.patch), "--steps",
-                   str(args.steps), "--child", mode, str(size)]  # fmt: skip
+            cmd = [
+                sys.executable,
+                __file__,
+                "--run",
+                args.run,
+                "--patch",
+                str(args.patch),
+                "--steps",
+                str(args.steps),
+                "--child",
+                mode,
+                str(size),
+            ]
             proc = subprocess.run(cmd, capture_output=True, text=True)
             lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
             if proc.returncode != 0 or not lines:
@@ -156,9 +206,12 @@ def main() -> None:
             elif "error" in row:
                 print(f"{mode:9s} {size:>5d} px  failed: {row['error']}", flush=True)
             else:
-                print(f"{mode:9s} {row['image']:>9s} ({row['patches']} patches of {row['patch']}²): peak RSS "
-                      f"{row['peak_rss_mb']:,} MB (after loading {row['base_rss_mb']:,} MB), "
-                      f"{row['seconds']} s for {row['steps']} steps", flush=True)  # fmt: skip
+                print(
+                    f"{mode:9s} {row['image']:>9s} ({row['patches']} patches of {row['patch']}²): peak RSS "
+                    f"{row['peak_rss_mb']:,} MB (after loading {row['base_rss_mb']:,} MB), "
+                    f"{row['seconds']} s for {row['steps']} steps",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":

@@ -24,14 +24,19 @@ import time
 from pathlib import Path
 
 
-def bench(run: str, data: str | None, num_ids: int, bits: int, phase1: int, phase2: int,
-          overrides: list[str]) -> dict:  # fmt: skip
+def bench(
+    run: str, data: str | None, num_ids: int, bits: int, phase1: int, phase2: int, overrides: list[str]
+) -> dict:
     from mnerf_jax.watermark import embed, model
 
     source = embed.load_source(run)
     cfg = embed.resolve_config(source, None, overrides, num_ids, bits).watermark
     schedule = model.phase_steps(cfg)
-    short = [*overrides, f"watermark.schedule.phase1_steps={phase1}", f"watermark.schedule.phase2_steps={phase2}"]
+    short = [
+        *overrides,
+        f"watermark.schedule.phase1_steps={phase1}",
+        f"watermark.schedule.phase2_steps={phase2}",
+    ]
     stamps: list[float] = []
     phases: list[int] = []
 
@@ -41,8 +46,16 @@ def bench(run: str, data: str | None, num_ids: int, bits: int, phase1: int, phas
 
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        result = embed.embed(run, Path(tmp) / "wm", num_ids, bits, overrides=short, data_path=data,
-                             progress=False, on_step=on_step)  # fmt: skip
+        result = embed.embed(
+            run,
+            Path(tmp) / "wm",
+            num_ids,
+            bits,
+            overrides=short,
+            data_path=data,
+            progress=False,
+            on_step=on_step,
+        )
     seconds = [b - a for a, b in zip([start, *stamps[:-1]], stamps, strict=True)]
     per_phase = {p: [s for s, q in zip(seconds, phases, strict=True) if q == p] for p in (1, 2)}
     median = {p: statistics.median(v[1:]) if len(v) > 1 else float("nan") for p, v in per_phase.items()}
@@ -50,12 +63,17 @@ def bench(run: str, data: str | None, num_ids: int, bits: int, phase1: int, phas
     overhead = sum(v[0] - median[p] for p, v in per_phase.items() if v)
     projected = overhead + schedule[0] * median[1] + schedule[1] * median[2]
     return {
-        "num_ids": num_ids, "bits": bits, "ids_per_step": model.ids_per_step_of(cfg, num_ids),
-        "phase1_s_per_step": round(median[1], 3), "phase2_s_per_step": round(median[2], 3),
+        "num_ids": num_ids,
+        "bits": bits,
+        "ids_per_step": model.ids_per_step_of(cfg, num_ids),
+        "phase1_s_per_step": round(median[1], 3),
+        "phase2_s_per_step": round(median[2], 3),
         "first_steps_s": [round(v[0], 1) for v in per_phase.values() if v],
-        "redone_steps": result.redone_steps, "schedule": list(schedule),
-        "projected_s": round(projected), "projected_h": round(projected / 3600, 2),
-    }  # fmt: skip
+        "redone_steps": result.redone_steps,
+        "schedule": list(schedule),
+        "projected_s": round(projected),
+        "projected_h": round(projected / 3600, 2),
+    }
 
 
 def main() -> None:
@@ -74,10 +92,12 @@ def main() -> None:
         print(json.dumps(row))
         return
     p1, p2 = row["schedule"]
-    print(f"{row['num_ids']} IDs x {row['bits']} bits, {row['ids_per_step']} per step: phase 1 "
-          f"{row['phase1_s_per_step']} s/step, phase 2 {row['phase2_s_per_step']} s/step (first steps "
-          f"{row['first_steps_s']} s, {row['redone_steps']} redone); the schedule {p1:,} + {p2:,} steps -> "
-          f"{row['projected_s']:,} s ({row['projected_h']} h) projected")  # fmt: skip
+    print(
+        f"{row['num_ids']} IDs x {row['bits']} bits, {row['ids_per_step']} per step: phase 1 "
+        f"{row['phase1_s_per_step']} s/step, phase 2 {row['phase2_s_per_step']} s/step (first steps "
+        f"{row['first_steps_s']} s, {row['redone_steps']} redone); the schedule {p1:,} + {p2:,} steps -> "
+        f"{row['projected_s']:,} s ({row['projected_h']} h) projected"
+    )
 
 
 if __name__ == "__main__":

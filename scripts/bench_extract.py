@@ -2,7 +2,7 @@
 
     python scripts/bench_extract.py [--bits 16] [--repeats 5] [--sizes 100 200 800] [--batches 1 32] [--json]
 
-Each row is one (image side, batch) pair: JAX (``mnerf_jax.reader.extract.decode``, jitted, eval mode) and the same
+Each row is one (image side, batch) pair: JAX (``reader.extract.decode``, jitted, eval mode) and the same
 decoder with the same weights in PyTorch (eval mode, ``torch.inference_mode``, LL2 as the same two matrix
 products), both timed best-of-``repeats`` after a warm-up call. PyTorch is imported here only; without it the
 PyTorch column is skipped with a message. ``--json`` prints one JSON object per row.

@@ -35,7 +35,7 @@ import numpy as np  # noqa: E402
 
 from mnerf_jax.core.config import load_config  # noqa: E402
 from mnerf_jax.data import camera_rays, load_scene  # noqa: E402
-from mnerf_jax.tensorf import budgets, chunked
+from mnerf_jax.tensorf import budgets, chunked  # noqa: E402
 from mnerf_jax.tensorf.fit import loop as train  # noqa: E402
 
 

@@ -41,7 +41,7 @@ from jax.scipy.ndimage import map_coordinates  # noqa: E402
 
 from mnerf_jax.core import xla_cpu  # noqa: E402
 from mnerf_jax.core.config import ModelConfig  # noqa: E402
-from mnerf_jax.tensorf import alpha_mask, budgets, field, grid_volume, grids, raymarch, render
+from mnerf_jax.tensorf import alpha_mask, budgets, field, grid_volume, grids, raymarch, render  # noqa: E402
 
 
 def best_time(fn: Callable[[], object], repeats: int) -> float:
@@ -239,8 +239,9 @@ def bench_density(repeats: int, options: dict) -> dict[str, float]:
         for points in (524_288, 1_572_864):
             xyz = points_along_rays(jax.random.PRNGKey(1), points // 384, 384, res)
             for method in ("gather", "volume", "auto"):
-                fwd = jax.jit(lambda g, x, m=method: grid_volume.sample_vm_sum(g, x, m),
-                              compiler_options=options)
+                fwd = jax.jit(
+                    lambda g, x, m=method: grid_volume.sample_vm_sum(g, x, m), compiler_options=options
+                )
                 loss = lambda g, x, m=method: jnp.sum(jnp.sin(grid_volume.sample_vm_sum(g, x, m)))
                 grad = jax.jit(jax.grad(loss), compiler_options=options)
                 name = f"density_{method}_{res}^3_{points // 1000}k"

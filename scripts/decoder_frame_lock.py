@@ -42,15 +42,27 @@ def frame_lock_figures(loaded: decoder_io.LoadedDecoder, size: int, n: int, psnr
         inside = (dist >= lo) & (dist < hi)
         if inside.any():
             share = float(energy[inside].sum() / energy.sum())
-            bands.append({"from_px": lo, "to_px": min(hi, size // 2), "energy_share": share,
-                          "area_share": float(inside.mean())})  # fmt: skip
+            bands.append(
+                {
+                    "from_px": lo,
+                    "to_px": min(hi, size // 2),
+                    "energy_share": share,
+                    "area_share": float(inside.mean()),
+                }
+            )
     c = size // 4
 
     def accuracy(x: jnp.ndarray) -> float:
         return float(jnp.mean((read(x) > 0) == (bits > 0.5)))
 
-    return {"size": size, "images": n, "psnr": psnr, "bands": bands, "bit_acc_whole": accuracy(encoded),
-            "bit_acc_centre_crop": accuracy(encoded[:, c : size - c, c : size - c])}  # fmt: skip
+    return {
+        "size": size,
+        "images": n,
+        "psnr": psnr,
+        "bands": bands,
+        "bit_acc_whole": accuracy(encoded),
+        "bit_acc_centre_crop": accuracy(encoded[:, c : size - c, c : size - c]),
+    }
 
 
 def main() -> None:
@@ -68,12 +80,16 @@ def main() -> None:
         if args.json:
             print(json.dumps(fig))
             continue
-        print(f"{size}²: informed 1-step bit accuracy, whole image {fig['bit_acc_whole']:.3f}, "
-              f"centre crop {fig['bit_acc_centre_crop']:.3f}")  # fmt: skip
+        print(
+            f"{size}²: informed 1-step bit accuracy, whole image {fig['bit_acc_whole']:.3f}, "
+            f"centre crop {fig['bit_acc_centre_crop']:.3f}"
+        )
         for band in fig["bands"]:
             lo, hi, energy, area = band["from_px"], band["to_px"], band["energy_share"], band["area_share"]
-            print(f"  {lo:>3}–{hi:<3} px from the border: {energy:6.1%} of the residual energy"
-                  f" on {area:6.1%} of the area")
+            print(
+                f"  {lo:>3}–{hi:<3} px from the border: {energy:6.1%} of the residual energy"
+                f" on {area:6.1%} of the area"
+            )
 
 
 if __name__ == "__main__":

@@ -118,24 +118,36 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=10, help="informed iterations (10)")
     parser.add_argument("--low-draws", type=int, default=2, help="Low-policy draws per view (2; 0: none)")
     parser.add_argument("--batch", type=int, default=16, help="views per call (16)")
-    parser.add_argument("--object-only", action="store_true",
-                        help="confine the residual to the object (pixels not the background colour), where a "
-                        "field can change colour without new geometry")  # fmt: skip
-    parser.add_argument("--read-window", type=float, default=0.0, metavar="FRACTION",
-                        help="the decoder reads a window of this fraction of the shorter side, centred on "
-                        "the object (watermark.reading.window; 0: the whole image)")  # fmt: skip
+    parser.add_argument(
+        "--object-only",
+        action="store_true",
+        help="confine the residual to the object (pixels not the background colour), where a "
+        "field can change colour without new geometry",
+    )
+    parser.add_argument(
+        "--read-window",
+        type=float,
+        default=0.0,
+        metavar="FRACTION",
+        help="the decoder reads a window of this fraction of the shorter side, centred on "
+        "the object (watermark.reading.window; 0: the whole image)",
+    )
     parser.add_argument("--json", action="store_true", help="one JSON line per residual PSNR")
     args = parser.parse_args()
 
-    scene = load_scene(args.data, DataConfig(downscale=args.downscale), splits=(args.split,),
-                       max_views=args.views)  # fmt: skip
+    scene = load_scene(
+        args.data, DataConfig(downscale=args.downscale), splits=(args.split,), max_views=args.views
+    )
     images = np.asarray(scene.splits[args.split].images, np.float32)
     masks = None
     if args.object_only:  # background: within 1/255 of the background colour in every channel
         background = 1.0 if scene.white_bg else 0.0
         masks = (np.abs(images - background).max(-1, keepdims=True) > 1.0 / 255).astype(np.float32)
-    loaded = (decoder_io.load_decoder(args.decoder, expect_bits=args.bits) if args.decoder
-              else decoder_io.load_shipped_decoder(args.bits))  # fmt: skip
+    loaded = (
+        decoder_io.load_decoder(args.decoder, expect_bits=args.bits)
+        if args.decoder
+        else decoder_io.load_shipped_decoder(args.bits)
+    )
     keyset = keys.generate_keys(args.num_ids, args.bits, keys.default_min_hamming(args.num_ids, args.bits))
     targets = [float(v) for v in args.psnr.split(",") if v.strip()]
     if args.clean_psnr is not None:
@@ -144,9 +156,18 @@ def main() -> None:
         parser.error("give --clean-psnr (and --max-drop) or --psnr")
     for psnr in targets:
         t0 = time.perf_counter()
-        figures = bound_figures(loaded, images, keyset.messages, psnr, args.iterations, args.batch,
-                                args.low_draws, masks, args.read_window,
-                                1.0 if scene.white_bg else 0.0)  # fmt: skip
+        figures = bound_figures(
+            loaded,
+            images,
+            keyset.messages,
+            psnr,
+            args.iterations,
+            args.batch,
+            args.low_draws,
+            masks,
+            args.read_window,
+            1.0 if scene.white_bg else 0.0,
+        )
         row = {
             "views": len(images),
             "image": list(images.shape[1:3]),
@@ -164,11 +185,13 @@ def main() -> None:
             print(json.dumps(row))
         else:
             none, low = figures["none"], figures.get("low", {})
-            print(f"residual {psnr:.2f} dB ({len(images)} views {images.shape[1]}x{images.shape[2]}): bits "
-                  f"{none['bit_accuracy_mean']:.1%} (worst ID {none['bit_accuracy_min_id']:.1%}), best match "
-                  f"right {none['best_match_right']:.0%}, identified {none['identified_right']:.0%}; "
-                  f"Low: bits {low.get('bit_accuracy_mean', float('nan')):.1%}, identified "
-                  f"{low.get('identified_right', float('nan')):.0%}")  # fmt: skip
+            print(
+                f"residual {psnr:.2f} dB ({len(images)} views {images.shape[1]}x{images.shape[2]}): bits "
+                f"{none['bit_accuracy_mean']:.1%} (worst ID {none['bit_accuracy_min_id']:.1%}), best match "
+                f"right {none['best_match_right']:.0%}, identified {none['identified_right']:.0%}; "
+                f"Low: bits {low.get('bit_accuracy_mean', float('nan')):.1%}, identified "
+                f"{low.get('identified_right', float('nan')):.0%}"
+            )
 
 
 if __name__ == "__main__":

@@ -7,20 +7,35 @@ import json
 from pathlib import Path
 
 NAME = "compare"
-HELP = ("Tabulate watermarked runs' evaluations (eval-<split>.json), grouped by the [watermark] settings "
-        "they differ in; each setting's runs (seeds) as mean and range.")  # fmt: skip
+HELP = (
+    "Tabulate watermarked runs' evaluations (eval-<split>.json), grouped by the [watermark] settings "
+    "they differ in; each setting's runs (seeds) as mean and range."
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("runs", nargs="+", type=Path, metavar="WMRUN",
-                        help="watermarked run directories, each evaluated with mnerf evaluate")  # fmt: skip
+    parser.add_argument(
+        "runs",
+        nargs="+",
+        type=Path,
+        metavar="WMRUN",
+        help="watermarked run directories, each evaluated with mnerf evaluate",
+    )
     parser.add_argument(
         "--split", default="test", help="the evaluation to read: eval-<split>.json (default test)"
     )
-    parser.add_argument("--ignore", default="", metavar="FIELD,...",
-                        help="more [watermark] fields (or source_run) to fold, as seeds are")  # fmt: skip
-    parser.add_argument("--plot", type=Path, metavar="FILE.png",
-                        help="also plot each run's PSNR drop against its bit accuracy")  # fmt: skip
+    parser.add_argument(
+        "--ignore",
+        default="",
+        metavar="FIELD,...",
+        help="more [watermark] fields (or source_run) to fold, as seeds are",
+    )
+    parser.add_argument(
+        "--plot",
+        type=Path,
+        metavar="FILE.png",
+        help="also plot each run's PSNR drop against its bit accuracy",
+    )
     parser.add_argument("--json", action="store_true", help="print JSON instead of the tables")
 
 

@@ -25,8 +25,10 @@ from mnerf_jax.core import rundir
 from mnerf_jax.watermark import run as wm_run
 
 NAME = "demo"
-HELP = ("Fit the built-in procedural scene, evaluate it, render its test views and an orbit GIF, then embed "
-        "4 watermark IDs × 16 bits and write a report.")  # fmt: skip
+HELP = (
+    "Fit the built-in procedural scene, evaluate it, render its test views and an orbit GIF, then embed "
+    "4 watermark IDs × 16 bits and write a report."
+)
 
 DEMO_MARKER = "demo.json"
 DEMO_CONFIG = "procedural"
@@ -37,12 +39,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", type=Path, default=Path("mnerf-demo"), help="output folder (default ./mnerf-demo)"
     )
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a field of the procedural config (repeatable)")  # fmt: skip
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a field of the procedural config (repeatable)",
+    )
     parser.add_argument("--frames", type=int, default=48, help="frames of the orbit GIF (default 48)")
-    parser.add_argument("--decoder", type=Path, default=None, metavar="FILE",
-                        help=f"{WM_BITS}-bit decoder for the watermark step (default: the shipped one; "
-                             "without either, a fresh decoder trained with the field: 'fresh')")  # fmt: skip
+    parser.add_argument(
+        "--decoder",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help=f"{WM_BITS}-bit decoder for the watermark step (default: the shipped one; "
+        "without either, a fresh decoder trained with the field: 'fresh')",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -91,8 +103,11 @@ def step_fit(ctx: DemoContext) -> None:
     resume = rundir.read_marker(ctx.run_dir) is not None
     summary = fit_run(ctx.config, None, ctx.run_dir, resume=resume, evaluate=False, quiet=ctx.quiet)
     ctx.state["fit"] = summary
-    ctx.row("training", f"{summary['steps']} steps, {summary['train_seconds']:.1f} s, "
-                        f"{summary['train_rays_per_s']:,.0f} rays/s")  # fmt: skip
+    ctx.row(
+        "training",
+        f"{summary['steps']} steps, {summary['train_seconds']:.1f} s, "
+        f"{summary['train_rays_per_s']:,.0f} rays/s",
+    )
 
 
 def step_evaluate(ctx: DemoContext) -> None:
@@ -143,8 +158,10 @@ def find_decoder(path: Path | None) -> tuple[Path, str]:
     shipped = decoder_io.shipped_decoder_path(WM_BITS)
     if shipped.is_file():
         return shipped, ""
-    note = (f"no {WM_BITS}-bit decoder is shipped ({shipped} is missing): starting from a fresh decoder "
-            "trained with the field in phase 2 (--decoder FILE to start from your own)")  # fmt: skip
+    note = (
+        f"no {WM_BITS}-bit decoder is shipped ({shipped} is missing): starting from a fresh decoder "
+        "trained with the field in phase 2 (--decoder FILE to start from your own)"
+    )
     return Path(decoder_io.FRESH), note
 
 
@@ -160,19 +177,34 @@ def step_watermark(ctx: DemoContext) -> None:
     wm_dir = ctx.out / "wm"
     marker = rundir.read_marker(wm_dir) if wm_dir.is_dir() else None
     resume = marker is not None and marker.get("kind") == embed.WM_KIND
-    embed.embed(ctx.run_dir, wm_dir, WM_IDS, WM_BITS, overrides=ctx.embed_overrides,
-                decoder_path=ctx.decoder, resume=resume, progress=not ctx.quiet)  # fmt: skip
+    embed.embed(
+        ctx.run_dir,
+        wm_dir,
+        WM_IDS,
+        WM_BITS,
+        overrides=ctx.embed_overrides,
+        decoder_path=ctx.decoder,
+        resume=resume,
+        progress=not ctx.quiet,
+    )
     ev = wm_eval.evaluate_watermarked_run(wm_dir, "test", progress=not ctx.quiet, keep_renders=True)
     renders = {n: r[0] for n, r in ev.pop("_renders").items()}
     clean = ev.pop("_clean")
     ev.pop("_gt")
     reference = clean[0] if clean is not None else next(iter(renders.values()))
     paths = report.write_report(ctx.out / "report", ev, renders, reference)
-    ctx.state["watermark"] = {"eval": ev, "report": paths, "rows": report.summary_rows(ev),
-                              "table": report.format_table(ev)}  # fmt: skip
-    ctx.row("watermark", f"{ev['num_ids']} IDs × {ev['bits']} bits, bit accuracy "
-                         f"{ev['bit_accuracy_mean']:.1%} (worst ID {ev['bit_accuracy_min']:.1%}), best match "
-                         f"right for {ev['identification_accuracy']:.0%} of {ev['views']} views × IDs")
+    ctx.state["watermark"] = {
+        "eval": ev,
+        "report": paths,
+        "rows": report.summary_rows(ev),
+        "table": report.format_table(ev),
+    }
+    ctx.row(
+        "watermark",
+        f"{ev['num_ids']} IDs × {ev['bits']} bits, bit accuracy "
+        f"{ev['bit_accuracy_mean']:.1%} (worst ID {ev['bit_accuracy_min']:.1%}), best match "
+        f"right for {ev['identification_accuracy']:.0%} of {ev['views']} views × IDs",
+    )
     ctx.row("watermark report", str(paths["markdown"]))
 
 
@@ -207,8 +239,15 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(DEMO_CONFIG, args.set)
     decoder, note = find_decoder(args.decoder)
     watermark_sets = tuple(item for item in args.set if item.strip().startswith("watermark."))
-    ctx = DemoContext(out=args.out, config=config, frames=args.frames, quiet=args.quiet, decoder=decoder,
-                      decoder_note=note, embed_overrides=watermark_sets)  # fmt: skip
+    ctx = DemoContext(
+        out=args.out,
+        config=config,
+        frames=args.frames,
+        quiet=args.quiet,
+        decoder=decoder,
+        decoder_note=note,
+        embed_overrides=watermark_sets,
+    )
     prepare_out(ctx)
     t0 = time.perf_counter()
     for i, (title, step) in enumerate(STEPS, 1):

@@ -8,34 +8,68 @@ import sys
 from pathlib import Path
 
 NAME = "embed"
-HELP = ("Embed N keyed watermark messages into a fitted TensoRF run; writes a watermarked run "
-        "(checkpoints, keys.json, the fine-tuned decoder).")  # fmt: skip
+HELP = (
+    "Embed N keyed watermark messages into a fitted TensoRF run; writes a watermarked run "
+    "(checkpoints, keys.json, the fine-tuned decoder)."
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--from", dest="source", type=Path, required=True, metavar="RUN",
-                        help="fitted TensoRF run directory (mnerf fit --out RUN)")  # fmt: skip
+    parser.add_argument(
+        "--from",
+        dest="source",
+        type=Path,
+        required=True,
+        metavar="RUN",
+        help="fitted TensoRF run directory (mnerf fit --out RUN)",
+    )
     parser.add_argument("--out", type=Path, required=True, metavar="WMRUN", help="watermarked run to create")
     parser.add_argument("--num-ids", type=int, required=True, metavar="N", help="number of watermark IDs")
     parser.add_argument("--bits", type=int, required=True, metavar="L", help="message length in bits")
-    parser.add_argument("--config", default=None,
-                        help="preset whose [watermark] section to use (default: the run's)")  # fmt: skip
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config field, e.g. --set watermark.schedule.phase2_steps=400 (repeatable)")
-    parser.add_argument("--decoder", type=Path, default=None, metavar="FILE",
-                        help="decoder to start from (default: the shipped decoder for --bits); 'fresh': "
-                             "a random-init decoder whitened on the scene's training images, trained in "
-                             "phase 2")  # fmt: skip
+    parser.add_argument(
+        "--config", default=None, help="preset whose [watermark] section to use (default: the run's)"
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config field, e.g. --set watermark.schedule.phase2_steps=400 (repeatable)",
+    )
+    parser.add_argument(
+        "--decoder",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="decoder to start from (default: the shipped decoder for --bits); 'fresh': "
+        "a random-init decoder whitened on the scene's training images, trained in "
+        "phase 2",
+    )
     parser.add_argument("--data", type=Path, default=None, help="scene directory (default: the fitted run's)")
     parser.add_argument("--resume", action="store_true", help="continue the embedding in --out")
-    parser.add_argument("--time-budget", type=float, default=None, metavar="MIN",
-                        help="end within MIN minutes of wall time: stop before a step that would not fit "
-                             "(the run so far is saved; --resume continues it; sets "
-                             "watermark.time_budget.minutes)")  # fmt: skip
-    parser.add_argument("--steps", type=int, default=None, metavar="K",
-                        help="stop after K steps in all (a checkpoint is written; --resume continues)")
-    parser.add_argument("--eval-views", type=int, default=-1, metavar="V",
-                        help="afterwards evaluate on V test views (0: all; default -1: no evaluation)")
+    parser.add_argument(
+        "--time-budget",
+        type=float,
+        default=None,
+        metavar="MIN",
+        help="end within MIN minutes of wall time: stop before a step that would not fit "
+        "(the run so far is saved; --resume continues it; sets "
+        "watermark.time_budget.minutes)",
+    )
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        metavar="K",
+        help="stop after K steps in all (a checkpoint is written; --resume continues)",
+    )
+    parser.add_argument(
+        "--eval-views",
+        type=int,
+        default=-1,
+        metavar="V",
+        help="afterwards evaluate on V test views (0: all; default -1: no evaluation)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -46,17 +80,28 @@ def run(args: argparse.Namespace) -> int:
     if args.config is None and not args.resume:
         drift = embed.watermark_defaults_drift(args.source, args.set)
         if drift:
-            print(f"mnerf embed: note: {args.source} recorded [watermark] settings that differ from today's "
-                  f"defaults of its preset: {'; '.join(drift)}. Embedding with the recorded ones; "
-                  "--config PRESET or --set watermark.KEY=VALUE to change them.", file=sys.stderr)
+            print(
+                f"mnerf embed: note: {args.source} recorded [watermark] settings that differ from today's "
+                f"defaults of its preset: {'; '.join(drift)}. Embedding with the recorded ones; "
+                "--config PRESET or --set watermark.KEY=VALUE to change them.",
+                file=sys.stderr,
+            )
     overrides = list(args.set)
     if args.time_budget is not None:
         overrides.append(f"watermark.time_budget.minutes={args.time_budget}")
     result = embed.embed(
-        args.source, args.out, args.num_ids, args.bits, preset=args.config, overrides=overrides,
-        decoder_path=args.decoder, data_path=args.data, resume=args.resume, stop_at=args.steps,
+        args.source,
+        args.out,
+        args.num_ids,
+        args.bits,
+        preset=args.config,
+        overrides=overrides,
+        decoder_path=args.decoder,
+        data_path=args.data,
+        resume=args.resume,
+        stop_at=args.steps,
         progress=not args.quiet,
-    )  # fmt: skip
+    )
     last = result.last_metrics
     summary = {
         "out": str(result.run_dir),

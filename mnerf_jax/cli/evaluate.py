@@ -16,25 +16,34 @@ from mnerf_jax.core import rundir
 from mnerf_jax.watermark import run as wm_run
 
 NAME = "evaluate"
-HELP = ("Evaluate a fitted run on a split (PSNR, SSIM, LPIPS), or a watermarked run (also bit accuracy and "
-        "identification of every ID); writes RUN/eval-<split>.json.")  # fmt: skip
+HELP = (
+    "Evaluate a fitted run on a split (PSNR, SSIM, LPIPS), or a watermarked run (also bit accuracy and "
+    "identification of every ID); writes RUN/eval-<split>.json."
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--run", type=Path, required=True,
-                        help="run directory written by mnerf fit or mnerf embed")  # fmt: skip
+    parser.add_argument(
+        "--run", type=Path, required=True, help="run directory written by mnerf fit or mnerf embed"
+    )
     parser.add_argument("--split", default="test", help="test | val | train (default test)")
     parser.add_argument(
         "--data", type=Path, help="scene directory holding the split (default: the run's data)"
     )
-    parser.add_argument("--views", type=int, default=0, metavar="N",
-                        help="evaluate N evenly spread views (default 0: all)")  # fmt: skip
+    parser.add_argument(
+        "--views", type=int, default=0, metavar="N", help="evaluate N evenly spread views (default 0: all)"
+    )
     parser.add_argument(
         "--lpips", choices=("alex", "vgg"), default="alex", help="LPIPS network (default alex)"
     )
-    parser.add_argument("--read-jitter", type=int, default=None, metavar="R",
-                        help="watermarked runs: average the decoder's logits over the read windows moved by "
-                             "up to R pixels (default: the run's watermark.reading.jitter)")
+    parser.add_argument(
+        "--read-jitter",
+        type=int,
+        default=None,
+        metavar="R",
+        help="watermarked runs: average the decoder's logits over the read windows moved by "
+        "up to R pixels (default: the run's watermark.reading.jitter)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -67,12 +76,14 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if bar is not None:
             bar.close()
-    result.update({
-        "split": args.split,
-        "step": loaded.step,
-        "data": str(args.data.expanduser().resolve()) if args.data is not None else loaded.data_path,
-        "render_seconds": round(time.perf_counter() - t0, 2),
-    })  # fmt: skip
+    result.update(
+        {
+            "split": args.split,
+            "step": loaded.step,
+            "data": str(args.data.expanduser().resolve()) if args.data is not None else loaded.data_path,
+            "render_seconds": round(time.perf_counter() - t0, 2),
+        }
+    )
     path = Path(args.run) / f"eval-{args.split}.json"
     rundir.write_json_atomic(path, result)
     summary = {k: v for k, v in result.items() if k not in ("per_view", "view_names")}
@@ -88,11 +99,18 @@ def evaluate_watermarked(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     result = wm_eval.evaluate_watermarked_run(
-        args.run, args.split, args.data, max_views=args.views or None, lpips_net=args.lpips,
-        progress=not args.quiet, read_jitter=args.read_jitter,
-    )  # fmt: skip
+        args.run,
+        args.split,
+        args.data,
+        max_views=args.views or None,
+        lpips_net=args.lpips,
+        progress=not args.quiet,
+        read_jitter=args.read_jitter,
+    )
     print(report.format_table(result))
     path = Path(args.run) / f"eval-{args.split}.json"
-    print(f"mnerf evaluate: {result['num_ids']} IDs × {result['views']} views in "
-          f"{time.perf_counter() - t0:.1f} s -> {path}")  # fmt: skip
+    print(
+        f"mnerf evaluate: {result['num_ids']} IDs × {result['views']} views in "
+        f"{time.perf_counter() - t0:.1f} s -> {path}"
+    )
     return 0

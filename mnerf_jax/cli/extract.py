@@ -9,15 +9,22 @@ from pathlib import Path
 from typing import Any
 
 NAME = "extract"
-HELP = ("Decode the watermark bits of images with a HiDDeN decoder (default: the shipped 16-bit one), or "
-        "with --run WMRUN identify each image's watermark ID (bit accuracy, p-values).")  # fmt: skip
+HELP = (
+    "Decode the watermark bits of images with a HiDDeN decoder (default: the shipped 16-bit one), or "
+    "with --run WMRUN identify each image's watermark ID (bit accuracy, p-values)."
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", nargs="+", type=Path, metavar="IMAGE", help="image files")
     source = parser.add_mutually_exclusive_group()
-    source.add_argument("--run", type=Path, default=None, metavar="WMRUN",
-                        help="watermarked run (mnerf embed): decode with its decoder, match its keys")
+    source.add_argument(
+        "--run",
+        type=Path,
+        default=None,
+        metavar="WMRUN",
+        help="watermarked run (mnerf embed): decode with its decoder, match its keys",
+    )
     source.add_argument(
         "--decoder",
         type=Path,
@@ -30,16 +37,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="message length: picks the shipped decoder (16 or 48), or checks --decoder",
     )
-    parser.add_argument("--threshold", type=float, default=None, metavar="P",
-                        help="with --run: claim an ID only when its Bonferroni-corrected p-value is below P "
-                             "(default: the run's watermark.reading.id_threshold, 1e-3 unless set)")
-    parser.add_argument("--test", choices=("binomial", "sign_flip"), default=None,
-                        help="with --run: the p-value that decides: binomial (matching bits) or sign_flip "
-                             "(matching bits weighted by the decoder's confidence); both are printed "
-                             "(default: the run's watermark.reading.id_test, binomial unless set)")
-    parser.add_argument("--read-jitter", type=int, default=None, metavar="R",
-                        help="average the decoder's logits over the read windows moved by up to R pixels "
-                             "((2R + 1)² reads; default: as the run's decoder file records, 0 for others)")
+    parser.add_argument(
+        "--threshold",
+        type=float,
+        default=None,
+        metavar="P",
+        help="with --run: claim an ID only when its Bonferroni-corrected p-value is below P "
+        "(default: the run's watermark.reading.id_threshold, 1e-3 unless set)",
+    )
+    parser.add_argument(
+        "--test",
+        choices=("binomial", "sign_flip"),
+        default=None,
+        help="with --run: the p-value that decides: binomial (matching bits) or sign_flip "
+        "(matching bits weighted by the decoder's confidence); both are printed "
+        "(default: the run's watermark.reading.id_test, binomial unless set)",
+    )
+    parser.add_argument(
+        "--read-jitter",
+        type=int,
+        default=None,
+        metavar="R",
+        help="average the decoder's logits over the read windows moved by up to R pixels "
+        "((2R + 1)² reads; default: as the run's decoder file records, 0 for others)",
+    )
     parser.add_argument("--batch", type=int, default=32, help="images per decoder call (32)")
     parser.add_argument("--json", action="store_true", help="one JSON object per image instead of text")
 
@@ -53,8 +74,9 @@ def extract_records(args: argparse.Namespace) -> tuple[list[dict], object]:
     window, background, jitter = read_window.of_metadata(decoder.metadata)
     if args.read_jitter is not None:
         jitter = read_window.check_jitter(args.read_jitter)
-    logits = extract.decode_paths(decoder.variables, args.images, decoder.wavelet, args.batch, window,
-                                  background, jitter)  # fmt: skip
+    logits = extract.decode_paths(
+        decoder.variables, args.images, decoder.wavelet, args.batch, window, background, jitter
+    )
     records = []
     for path, row in zip(args.images, logits, strict=True):
         records.append(
@@ -70,12 +92,17 @@ def extract_records(args: argparse.Namespace) -> tuple[list[dict], object]:
 def identification_line(record: dict[str, Any]) -> str:
     """One record of ``wm_eval.identify_images`` as text: the claimed ID or "no watermark", the best match's
     bit accuracy and its corrected p-value."""
-    figures = (f"best ID {record['best_id']}, bit accuracy {record['bit_accuracy']:.2%}, "
-               f"p = {record['p_corrected']:.3g} binomial (uncorrected {record['p_value']:.3g}), "
-               f"{record['p_corrected_sign_flip']:.3g} sign-flip")  # fmt: skip
+    figures = (
+        f"best ID {record['best_id']}, bit accuracy {record['bit_accuracy']:.2%}, "
+        f"p = {record['p_corrected']:.3g} binomial (uncorrected {record['p_value']:.3g}), "
+        f"{record['p_corrected_sign_flip']:.3g} sign-flip"
+    )
     if record["id"] < 0:
-        why = ("tie between keys" if record["best_id"] < 0
-               else f"{record['test'].replace('_', '-')} p ≥ {record['threshold']:g}")  # fmt: skip
+        why = (
+            "tie between keys"
+            if record["best_id"] < 0
+            else f"{record['test'].replace('_', '-')} p ≥ {record['threshold']:g}"
+        )
         return f"no watermark ({why}; {figures})"
     return f"ID {record['id']}  ({figures})"
 
@@ -86,10 +113,13 @@ def run_identify(args: argparse.Namespace) -> int:
     from mnerf_jax.evaluation import watermarked as wm_eval
 
     if args.bits is not None:
-        raise MnerfError("--bits applies to --decoder or the shipped decoders, not --run (the run's decoder "
-                         "fixes the message length)")  # fmt: skip
-    records = wm_eval.identify_images(args.run, args.images, args.threshold, args.batch, args.test,
-                                      args.read_jitter)  # fmt: skip
+        raise MnerfError(
+            "--bits applies to --decoder or the shipped decoders, not --run (the run's decoder "
+            "fixes the message length)"
+        )
+    records = wm_eval.identify_images(
+        args.run, args.images, args.threshold, args.batch, args.test, args.read_jitter
+    )
     if args.json:
         for record in records:
             print(json.dumps({**record, "run": str(args.run)}))

@@ -76,8 +76,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--resume", action="store_true", help="continue the run in --out from its last checkpoint"
     )
-    parser.add_argument("--eval-views", type=int, default=0, metavar="N",
-                        help="evaluate on N evenly spread test views (default 0: all)")  # fmt: skip
+    parser.add_argument(
+        "--eval-views",
+        type=int,
+        default=0,
+        metavar="N",
+        help="evaluate on N evenly spread test views (default 0: all)",
+    )
     parser.add_argument("--no-eval", action="store_true", help="skip the test-set evaluation at the end")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -127,8 +132,12 @@ class Progress:
             self.writer.add_scalar(f"train/{key}", mean[key], step + 1)
         self.writer.add_scalar("train/rays_per_s", rays_per_s, step + 1)
         if self.bar is not None:
-            self.bar.set_postfix(loss=f"{mean['loss']:.4f}", psnr=f"{mean['psnr']:.2f}",
-                                 rays_s=f"{rays_per_s:,.0f}", refresh=False)  # fmt: skip
+            self.bar.set_postfix(
+                loss=f"{mean['loss']:.4f}",
+                psnr=f"{mean['psnr']:.2f}",
+                rays_s=f"{rays_per_s:,.0f}",
+                refresh=False,
+            )
         self.window, self.window_start = [], now
 
     def close(self) -> None:
@@ -144,8 +153,15 @@ def run(args: argparse.Namespace) -> int:
 
     preset = choose_preset(args.config, args.data)
     config = load_config(preset, args.set)
-    summary = fit_run(config, args.data, args.out, resume=args.resume, evaluate=not args.no_eval,
-                      eval_views=args.eval_views, quiet=args.quiet)  # fmt: skip
+    summary = fit_run(
+        config,
+        args.data,
+        args.out,
+        resume=args.resume,
+        evaluate=not args.no_eval,
+        eval_views=args.eval_views,
+        quiet=args.quiet,
+    )
     test = summary.get("test", {})
     line = f"mnerf fit: {summary['steps']} steps in {summary['train_seconds']:.1f} s"
     if test:
@@ -155,8 +171,16 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def fit_run(config: Any, data: Path | None, out: Path, *, resume: bool = False, evaluate: bool = True,
-            eval_views: int = 0, quiet: bool = False) -> dict[str, Any]:  # fmt: skip
+def fit_run(
+    config: Any,
+    data: Path | None,
+    out: Path,
+    *,
+    resume: bool = False,
+    evaluate: bool = True,
+    eval_views: int = 0,
+    quiet: bool = False,
+) -> dict[str, Any]:
     """Fit ``config`` on the scene at ``data`` into the run directory ``out``; returns metrics.json's dict.
 
     Everything that can be checked is checked before anything is written: the output directory (see

@@ -13,22 +13,35 @@ from mnerf_jax.core import rundir
 from mnerf_jax.watermark import run as wm_run
 
 NAME = "render"
-HELP = ("Render a fitted or watermarked run: the views of a split, or an orbit/spiral camera path with a GIF "
-        "or MP4; --id K picks the watermark ID of a watermarked run.")  # fmt: skip
+HELP = (
+    "Render a fitted or watermarked run: the views of a split, or an orbit/spiral camera path with a GIF "
+    "or MP4; --id K picks the watermark ID of a watermarked run."
+)
 
 VIDEO_FORMATS = ("gif", "mp4")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--run", type=Path, required=True,
-                        help="run directory written by mnerf fit or mnerf embed")  # fmt: skip
-    parser.add_argument("--id", type=int, default=None, metavar="K",
-                        help="watermark ID to render, 0..N-1 (watermarked runs only; default 0)")  # fmt: skip
+    parser.add_argument(
+        "--run", type=Path, required=True, help="run directory written by mnerf fit or mnerf embed"
+    )
+    parser.add_argument(
+        "--id",
+        type=int,
+        default=None,
+        metavar="K",
+        help="watermark ID to render, 0..N-1 (watermarked runs only; default 0)",
+    )
     parser.add_argument("--split", default="test", help="test | train | val | path (default test)")
     parser.add_argument("--out", type=Path, required=True, help="output directory for the PNGs (and video)")
     parser.add_argument("--data", type=Path, help="scene directory (default: the one the run was fitted on)")
-    parser.add_argument("--views", type=int, default=0, metavar="N",
-                        help="render N evenly spread views of the split (default 0: all)")  # fmt: skip
+    parser.add_argument(
+        "--views",
+        type=int,
+        default=0,
+        metavar="N",
+        help="render N evenly spread views of the split (default 0: all)",
+    )
     parser.add_argument("--frames", type=int, default=120, help="frames of the camera path (--split path)")
     parser.add_argument("--fps", type=int, default=30, help="video frame rate (--split path)")
     parser.add_argument("--format", choices=VIDEO_FORMATS, default="gif", help="video format (--split path)")
@@ -49,8 +62,10 @@ def check_targets(out: Path, names: list[str], overwrite: bool) -> None:
         return
     clash = [n for n in names if (out / n).exists()]
     if clash:
-        raise rundir.RunError(f"--out {out} already holds {clash[0]} (and {len(clash) - 1} more of the files "
-                            "to write); pass --overwrite or choose another directory")  # fmt: skip
+        raise rundir.RunError(
+            f"--out {out} already holds {clash[0]} (and {len(clash) - 1} more of the files "
+            "to write); pass --overwrite or choose another directory"
+        )
 
 
 def write_video(path: Path, frames: list[np.ndarray], fps: int) -> None:
@@ -70,9 +85,19 @@ def write_video(path: Path, frames: list[np.ndarray], fps: int) -> None:
         ) from None
 
 
-def render_to(run: Any, split_name: str, out: Path, *, data: Path | None = None, views: int = 0,
-              frames: int = 120, fps: int = 30, video_format: str = "gif", overwrite: bool = False,
-              quiet: bool = False) -> dict[str, Any]:  # fmt: skip
+def render_to(
+    run: Any,
+    split_name: str,
+    out: Path,
+    *,
+    data: Path | None = None,
+    views: int = 0,
+    frames: int = 120,
+    fps: int = 30,
+    video_format: str = "gif",
+    overwrite: bool = False,
+    quiet: bool = False,
+) -> dict[str, Any]:
     """Render ``split_name`` (or ``path``) of a loaded run into ``out``; returns what was written."""
     import imageio.v3 as iio
 

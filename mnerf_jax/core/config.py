@@ -133,7 +133,9 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
     origin = get_origin(hint)
     if origin is Literal:
         if value not in get_args(hint):
-            raise ConfigError(f"{where}: expected one of {', '.join(map(str, get_args(hint)))}, got {value!r}")
+            raise ConfigError(
+                f"{where}: expected one of {', '.join(map(str, get_args(hint)))}, got {value!r}"
+            )
         return value
     if origin is tuple:
         if isinstance(value, str):

@@ -2,7 +2,7 @@
 
 A run directory holds::
 
-    RUN/run.json        {"kind": "tensorf" | "multinerf", "version": 1, "fingerprint": ..., "data": "/abs/scene/path"}
+    RUN/run.json        {"kind": "tensorf" | "multinerf", "version": 1, "fingerprint": ..., "data": PATH}
     RUN/config.json     the resolved config
     RUN/checkpoints/    orbax checkpoints (``checkpoint.CheckpointStore``)
     RUN/metrics.json    written by ``mnerf fit`` at the end
@@ -27,7 +27,6 @@ CONFIG_FILE = "config.json"
 RUN_FORMAT_VERSION = 1
 TENSORF_KIND = "tensorf"
 WATERMARK_KIND = "multinerf"
-
 
 
 class RunError(MnerfError):
@@ -116,8 +115,14 @@ def prepare_output(out: str | Path, config: Config, *, resume: bool, kind: str =
     return True
 
 
-def write_run_files(out: str | Path, config: Config, *, data: str | Path | None, kind: str = TENSORF_KIND,
-                    extra: dict[str, Any] | None = None) -> None:  # fmt: skip
+def write_run_files(
+    out: str | Path,
+    config: Config,
+    *,
+    data: str | Path | None,
+    kind: str = TENSORF_KIND,
+    extra: dict[str, Any] | None = None,
+) -> None:
     """Write ``config.json`` and the ``run.json`` marker (config first: a marker implies a config)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -11,8 +11,18 @@ import numpy as np
 
 # Each scalar is the mean of a metric over this many steps.
 LOG_EVERY = 10
-LOGGED_METRICS = ("loss", "bce", "key_ce", "perceptual", "bit_acc", "psnr", "psnr_clean", "psnr_budget",
-                  "fidelity", "loss_patch")  # fmt: skip
+LOGGED_METRICS = (
+    "loss",
+    "bce",
+    "key_ce",
+    "perceptual",
+    "bit_acc",
+    "psnr",
+    "psnr_clean",
+    "psnr_budget",
+    "fidelity",
+    "loss_patch",
+)
 
 
 class ScalarLog:

@@ -23,7 +23,7 @@ Strength = Literal["low", "medium", "high"]
 IdTest = Literal["binomial", "sign_flip"]
 ViewDensity = Literal["angles", "sphere"]
 
-# Variants whose ID enters only the last colour layer through FiLM, so a frozen source's samples can be cached.
+# Variants whose ID enters only the last colour layer through FiLM: a frozen source's samples can be cached.
 CACHEABLE_VARIANTS = ("multinerf", "no_grid", "frozen_geometry")
 # IDs per embedding step when ids_per_step is 0 (every ID), for runs with more IDs than this.
 MAX_AUTO_IDS_PER_STEP = 16
@@ -65,10 +65,13 @@ class ModuleConfig:
     emb_hidden: int = 32  # Emb's hidden width (ReLU)
 
     def __post_init__(self) -> None:
-        _require(min(self.wm_ranks) >= 0 and sum(self.wm_ranks) >= 1,
-                 f"watermark.module.wm_ranks must be ≥ 0 with a positive sum, got {list(self.wm_ranks)}")  # fmt: skip
-        _require(self.emb_dim >= 1 and self.emb_hidden >= 1,
-                 "watermark.module.emb_dim and emb_hidden must be ≥ 1")  # fmt: skip
+        _require(
+            min(self.wm_ranks) >= 0 and sum(self.wm_ranks) >= 1,
+            f"watermark.module.wm_ranks must be ≥ 0 with a positive sum, got {list(self.wm_ranks)}",
+        )
+        _require(
+            self.emb_dim >= 1 and self.emb_hidden >= 1, "watermark.module.emb_dim and emb_hidden must be ≥ 1"
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,14 +88,20 @@ class ScheduleConfig:
     cache_source: bool = False
 
     def __post_init__(self) -> None:
-        _require(self.phase1_steps >= -1 and self.phase2_steps >= -1,
-                 "watermark.schedule.phase1_steps and phase2_steps must be ≥ 0 (-1: by the number of IDs), "
-                 f"got {self.phase1_steps} and {self.phase2_steps}")  # fmt: skip
-        _require(self.ids_per_step >= 0, f"watermark.schedule.ids_per_step must be ≥ 0, got {self.ids_per_step}")
+        _require(
+            self.phase1_steps >= -1 and self.phase2_steps >= -1,
+            "watermark.schedule.phase1_steps and phase2_steps must be ≥ 0 (-1: by the number of IDs), "
+            f"got {self.phase1_steps} and {self.phase2_steps}",
+        )
+        _require(
+            self.ids_per_step >= 0, f"watermark.schedule.ids_per_step must be ≥ 0, got {self.ids_per_step}"
+        )
         _require(self.patch_size >= 1, f"watermark.schedule.patch_size must be ≥ 1, got {self.patch_size}")
-        _require(not (self.cache_source and self.jitter),
-                 "watermark.schedule.cache_source renders the cached samples of an evaluation render: "
-                 "set watermark.schedule.jitter=false")  # fmt: skip
+        _require(
+            not (self.cache_source and self.jitter),
+            "watermark.schedule.cache_source renders the cached samples of an evaluation render: "
+            "set watermark.schedule.jitter=false",
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,9 +143,13 @@ class LossesConfig:
 
     def __post_init__(self) -> None:
         _check_literals(self, "watermark.losses")
-        _require(self.lambda_key >= 0, f"watermark.losses.lambda_key must be ≥ 0 (0: off), got {self.lambda_key}")
-        _require(self.id_loss_power >= 0,
-                 f"watermark.losses.id_loss_power must be ≥ 0 (0: every ID alike), got {self.id_loss_power}")  # fmt: skip
+        _require(
+            self.lambda_key >= 0, f"watermark.losses.lambda_key must be ≥ 0 (0: off), got {self.lambda_key}"
+        )
+        _require(
+            self.id_loss_power >= 0,
+            f"watermark.losses.id_loss_power must be ≥ 0 (0: every ID alike), got {self.id_loss_power}",
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,8 +163,10 @@ class AugmentConfig:
 
     def __post_init__(self) -> None:
         _check_literals(self, "watermark.augment")
-        _require(self.per_step >= 0 and 0.0 <= self.prob <= 1.0,
-                 f"watermark.augment.per_step must be ≥ 0 and prob in [0, 1], got {self.per_step}, {self.prob}")  # fmt: skip
+        _require(
+            self.per_step >= 0 and 0.0 <= self.prob <= 1.0,
+            f"watermark.augment.per_step must be ≥ 0 and prob in [0, 1], got {self.per_step}, {self.prob}",
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,8 +187,10 @@ class ReadingConfig:
         _check_literals(self, "watermark.reading")
         _require(0.0 <= self.window <= 1.0, f"watermark.reading.window must be in [0, 1], got {self.window}")
         _require(self.jitter >= 0, f"watermark.reading.jitter must be ≥ 0, got {self.jitter}")
-        _require(0.0 < self.id_threshold < 1.0,
-                 f"watermark.reading.id_threshold must be in (0, 1), got {self.id_threshold}")  # fmt: skip
+        _require(
+            0.0 < self.id_threshold < 1.0,
+            f"watermark.reading.id_threshold must be in (0, 1), got {self.id_threshold}",
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,16 +206,22 @@ class FidelityConfig:
     ramp: tuple[float, float] = setting((0.0, 0.0), host=True)
 
     def __post_init__(self) -> None:
-        _require(self.psnr >= 0 and self.weight >= 0,
-                 f"watermark.fidelity.psnr (dB, 0: off) and weight must be ≥ 0, got {self.psnr} and {self.weight}")  # fmt: skip
+        _require(
+            self.psnr >= 0 and self.weight >= 0,
+            f"watermark.fidelity.psnr (dB, 0: off) and weight must be ≥ 0, got {self.psnr} and {self.weight}",
+        )
         if self.psnr_start:
-            _require(0 < self.psnr_start <= self.psnr,
-                     "watermark.fidelity.psnr_start (dB, 0: no ramp) must be > 0 and at most "
-                     f"watermark.fidelity.psnr, the budget it tightens to; got {self.psnr_start} and {self.psnr}")  # fmt: skip
+            _require(
+                0 < self.psnr_start <= self.psnr,
+                "watermark.fidelity.psnr_start (dB, 0: no ramp) must be > 0 and at most "
+                f"watermark.fidelity.psnr, the budget it tightens to; got {self.psnr_start} and {self.psnr}",
+            )
             first, last = self.ramp
-            _require(0 <= first <= last <= 1,
-                     "watermark.fidelity.ramp is two fractions of the schedule's steps, "
-                     f"0 ≤ start ≤ end ≤ 1; got {list(self.ramp)}")  # fmt: skip
+            _require(
+                0 <= first <= last <= 1,
+                "watermark.fidelity.ramp is two fractions of the schedule's steps, "
+                f"0 ≤ start ≤ end ≤ 1; got {list(self.ramp)}",
+            )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -217,13 +240,20 @@ class Phase3Config:
 
     def __post_init__(self) -> None:
         _check_literals(self, "watermark.phase3")
-        _require(min(self.steps, self.views) >= 0 and self.batch >= 1 and self.lr > 0
-                 and self.reserve_min >= 0 and self.lambda_clean >= 0,
-                 "watermark.phase3.steps and views must be ≥ 0 (0 steps: no phase 3), batch ≥ 1, lr > 0, "
-                 f"reserve_min ≥ 0 and lambda_clean ≥ 0; got {self.steps}, {self.views}, {self.batch}, "
-                 f"{self.lr}, {self.reserve_min}, {self.lambda_clean}")  # fmt: skip
-        _require(0 <= self.elevation_margin <= 90,
-                 f"watermark.phase3.elevation_margin must be within [0, 90] degrees, got {self.elevation_margin}")  # fmt: skip
+        _require(
+            min(self.steps, self.views) >= 0
+            and self.batch >= 1
+            and self.lr > 0
+            and self.reserve_min >= 0
+            and self.lambda_clean >= 0,
+            "watermark.phase3.steps and views must be ≥ 0 (0 steps: no phase 3), batch ≥ 1, lr > 0, "
+            f"reserve_min ≥ 0 and lambda_clean ≥ 0; got {self.steps}, {self.views}, {self.batch}, "
+            f"{self.lr}, {self.reserve_min}, {self.lambda_clean}",
+        )
+        _require(
+            0 <= self.elevation_margin <= 90,
+            f"watermark.phase3.elevation_margin must be within [0, 90] degrees, got {self.elevation_margin}",
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -261,19 +291,25 @@ class WatermarkConfig:
 
     def __post_init__(self) -> None:
         _check_literals(self, "watermark")
-        _require(not self.schedule.cache_source or self.variant in CACHEABLE_VARIANTS,
-                 "watermark.schedule.cache_source caches the fitted field's last-layer logits: variant "
-                 f"{self.variant!r} changes more than them (use {', '.join(CACHEABLE_VARIANTS)})")  # fmt: skip
+        _require(
+            not self.schedule.cache_source or self.variant in CACHEABLE_VARIANTS,
+            "watermark.schedule.cache_source caches the fitted field's last-layer logits: variant "
+            f"{self.variant!r} changes more than them (use {', '.join(CACHEABLE_VARIANTS)})",
+        )
 
     def check_ids(self, num_ids: int | None = None) -> None:
         """Raise ConfigError for an ID count the config cannot embed (default: ``num_ids``)."""
         n = self.num_ids if num_ids is None else num_ids
         _require(n >= 1, f"the number of IDs must be ≥ 1, got {n}")
-        _require(self.variant != "waterf" or n == 1,
-                 f"variant waterf embeds one message without an ID: use --num-ids 1 (got {n})")  # fmt: skip
-        _require(self.schedule.ids_per_step <= n,
-                 f"watermark.schedule.ids_per_step must be in [0, {n}] (0: every ID, at most "
-                 f"{MAX_AUTO_IDS_PER_STEP}; {n} IDs), got {self.schedule.ids_per_step}")  # fmt: skip
+        _require(
+            self.variant != "waterf" or n == 1,
+            f"variant waterf embeds one message without an ID: use --num-ids 1 (got {n})",
+        )
+        _require(
+            self.schedule.ids_per_step <= n,
+            f"watermark.schedule.ids_per_step must be in [0, {n}] (0: every ID, at most "
+            f"{MAX_AUTO_IDS_PER_STEP}; {n} IDs), got {self.schedule.ids_per_step}",
+        )
 
 
 def normalised(cfg: Any, key: str, defaults: Any = None) -> Any:
@@ -293,13 +329,19 @@ def normalised(cfg: Any, key: str, defaults: Any = None) -> Any:
 
 # Flat keys of config.json files written before the sections: old name -> (section, field).
 _RENAMED = {
-    "augment_strength": ("augment", "strength"), "augment_names": ("augment", "names"),
-    "augment_per_step": ("augment", "per_step"), "augment_prob": ("augment", "prob"),
-    "read_window": ("reading", "window"), "read_background": ("reading", "background"),
-    "read_jitter": ("reading", "jitter"), "fidelity_psnr": ("fidelity", "psnr"),
-    "lambda_fidelity": ("fidelity", "weight"), "fidelity_psnr_start": ("fidelity", "psnr_start"),
-    "fidelity_ramp": ("fidelity", "ramp"), "time_budget_min": ("time_budget", "minutes"),
-}  # fmt: skip
+    "augment_strength": ("augment", "strength"),
+    "augment_names": ("augment", "names"),
+    "augment_per_step": ("augment", "per_step"),
+    "augment_prob": ("augment", "prob"),
+    "read_window": ("reading", "window"),
+    "read_background": ("reading", "background"),
+    "read_jitter": ("reading", "jitter"),
+    "fidelity_psnr": ("fidelity", "psnr"),
+    "lambda_fidelity": ("fidelity", "weight"),
+    "fidelity_psnr_start": ("fidelity", "psnr_start"),
+    "fidelity_ramp": ("fidelity", "ramp"),
+    "time_budget_min": ("time_budget", "minutes"),
+}
 # Switches removed with their code path, and the one value this version still runs.
 _REMOVED = {"emb_activation": "relu", "budget_sizes_field": False}
 
@@ -325,8 +367,8 @@ def translate_flat(values: dict[str, Any]) -> dict[str, Any]:
         if key in _REMOVED:
             if value != _REMOVED[key]:
                 raise ConfigError(
-                    f"watermark.{key} = {value!r} was removed in this version (it runs {_REMOVED[key]!r} only); "
-                    "the run was written by an earlier mnerf-jax"
+                    f"watermark.{key} = {value!r} was removed in this version (it runs {_REMOVED[key]!r} "
+                    "only); the run was written by an earlier mnerf-jax"
                 )
             continue
         if key in legacy and not isinstance(value, dict):

@@ -87,9 +87,15 @@ def load_scene(
             aabb = file_aabb.astype(np.float32)
     else:
         loaded, ndc_space, depth_bounds = load_llff(
-            root, splits, data_cfg.llff_factor, data_cfg.llff_hold, white_bg, data_cfg.ndc,
-            downscale, max_views,
-        )  # fmt: skip
+            root,
+            splits,
+            data_cfg.llff_factor,
+            data_cfg.llff_hold,
+            white_bg,
+            data_cfg.ndc,
+            downscale,
+            max_views,
+        )
         if data_cfg.ndc:
             if render_cfg is None:
                 aabb = np.asarray(NDC_AABB, np.float32)

@@ -33,9 +33,22 @@ NGP_SCALE = 0.33
 NGP_OFFSET = (0.5, 0.5, 0.5)
 SUPPORTED_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
 INTRINSIC_KEYS = (
-    "fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2", "k3", "k4",
-    "camera_angle_x", "camera_angle_y", "camera_model",
-)  # fmt: skip
+    "fl_x",
+    "fl_y",
+    "cx",
+    "cy",
+    "w",
+    "h",
+    "k1",
+    "k2",
+    "p1",
+    "p2",
+    "k3",
+    "k4",
+    "camera_angle_x",
+    "camera_angle_y",
+    "camera_model",
+)
 
 
 def _key(file_path: str) -> str:

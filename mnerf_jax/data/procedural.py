@@ -157,20 +157,52 @@ def build_scene(seed: int) -> list[dict]:
     noise_freq = rng.normal(size=(6, 3))
     noise_freq *= rng.uniform(3.0, 6.5, (6, 1)) / np.linalg.norm(noise_freq, axis=1, keepdims=True)
     return [
-        {"shape": "cylinder", "centre": np.zeros(2), "radius": 1.0, "z": (-0.92, -0.84),
-         "texture": "polar", "colours": (cream, col[0]), "sectors": int(rng.integers(5, 9))},
-        {"shape": "sphere", "centre": np.array([-0.42, -0.32, -0.25]) + jitter(0.08), "radius": 0.5,
-         "texture": "checker", "colours": (col[1], cream), "cells": (int(rng.integers(3, 6)), 3)},
-        {"shape": "box", "centre": np.array([0.45, 0.42, -0.52]) + jitter(0.06) * [1, 1, 0],
-         "half": np.array([0.3, 0.3, 0.3]), "yaw": float(rng.uniform(0, math.pi / 2)),
-         "texture": "stripes", "colours": (col[2], col[3]), "axis": rng.normal(size=3),
-         "frequency": float(rng.uniform(2.6, 3.4))},
-        {"shape": "cylinder", "centre": np.array([0.42, -0.5]) + rng.uniform(-0.06, 0.06, 2), "radius": 0.27,
-         "z": (-0.84, float(rng.uniform(0.1, 0.4))), "texture": "noise", "colours": (col[4], light),
-         "frequency": noise_freq, "phase": rng.uniform(0, 2 * math.pi, 6)},
-        {"shape": "sphere", "centre": np.array([-0.25, 0.55, 0.45]) + jitter(0.08), "radius": 0.3,
-         "texture": "bands", "colours": (col[5], cream), "bands": float(rng.uniform(2.0, 3.5))},
-    ]  # fmt: skip
+        {
+            "shape": "cylinder",
+            "centre": np.zeros(2),
+            "radius": 1.0,
+            "z": (-0.92, -0.84),
+            "texture": "polar",
+            "colours": (cream, col[0]),
+            "sectors": int(rng.integers(5, 9)),
+        },
+        {
+            "shape": "sphere",
+            "centre": np.array([-0.42, -0.32, -0.25]) + jitter(0.08),
+            "radius": 0.5,
+            "texture": "checker",
+            "colours": (col[1], cream),
+            "cells": (int(rng.integers(3, 6)), 3),
+        },
+        {
+            "shape": "box",
+            "centre": np.array([0.45, 0.42, -0.52]) + jitter(0.06) * [1, 1, 0],
+            "half": np.array([0.3, 0.3, 0.3]),
+            "yaw": float(rng.uniform(0, math.pi / 2)),
+            "texture": "stripes",
+            "colours": (col[2], col[3]),
+            "axis": rng.normal(size=3),
+            "frequency": float(rng.uniform(2.6, 3.4)),
+        },
+        {
+            "shape": "cylinder",
+            "centre": np.array([0.42, -0.5]) + rng.uniform(-0.06, 0.06, 2),
+            "radius": 0.27,
+            "z": (-0.84, float(rng.uniform(0.1, 0.4))),
+            "texture": "noise",
+            "colours": (col[4], light),
+            "frequency": noise_freq,
+            "phase": rng.uniform(0, 2 * math.pi, 6),
+        },
+        {
+            "shape": "sphere",
+            "centre": np.array([-0.25, 0.55, 0.45]) + jitter(0.08),
+            "radius": 0.3,
+            "texture": "bands",
+            "colours": (col[5], cream),
+            "bands": float(rng.uniform(2.0, 3.5)),
+        },
+    ]
 
 
 def _intersect(obj: dict, o: np.ndarray, d: np.ndarray) -> Hit:
@@ -246,8 +278,16 @@ def camera_poses(seed: int, n_train: int, n_test: int) -> tuple[np.ndarray, np.n
 def render_view(objects: list[dict], c2w: np.ndarray, size: int) -> np.ndarray:
     """One RGBA view (uint8 [size, size, 4], straight alpha) supersampled 2x2 per pixel."""
     focal = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
-    cams = Cameras(c2w=c2w[None], fx=focal, fy=focal, cx=size / 2, cy=size / 2,
-                   distortion=np.zeros(4), width=size, height=size)  # fmt: skip
+    cams = Cameras(
+        c2w=c2w[None],
+        fx=focal,
+        fy=focal,
+        cx=size / 2,
+        cy=size / 2,
+        distortion=np.zeros(4),
+        width=size,
+        height=size,
+    )
     premult = np.zeros((size * size, 3))
     alpha = np.zeros(size * size)
     for sub in SUPERSAMPLE:

@@ -2,9 +2,9 @@
 
 ``mnerf evaluate`` saves every ID's render of every evaluated view as an 8-bit PNG
 (``WMRUN/eval-<split>/id<K>/<view>.png``). This module reads those files back, applies each of the 14
-augmentations of :mod:`mnerf_jax.imaging.augment` alone at one strength (Low / Medium / High, the paper's policies;
-their random parameters drawn per image from a fixed seed), rounds the attacked images to 8 bits again
-(what a verifier receives), decodes them with the run's decoder (and its read window) and scores them as
+augmentations of :mod:`mnerf_jax.imaging.augment` alone at one strength (Low / Medium / High, the paper's
+policies; their random parameters drawn per image from a fixed seed), rounds the attacked images to 8 bits
+again (what a verifier receives), decodes them with the run's decoder (and its read window) and scores them as
 evaluation scores the renders themselves: mean and worst-ID bit accuracy, best-matching key right, and named
 (the run's test and threshold). ``"none"`` is the PNGs as saved, the row ``eval-<split>.json`` reports as
 ``bit_accuracy_png_mean``. Writes ``WMRUN/eval-<split>-attacks.json``.
@@ -45,8 +45,10 @@ def saved_renders(run_dir: Path, split: str, views: int | None = None) -> tuple[
 
     path = run_dir / f"eval-{split}.json"
     if not path.is_file():
-        raise MnerfError(f"{run_dir} has no {path.name}: run `mnerf evaluate --run {run_dir} --split "
-                         f"{split}` first (it saves the renders this reads)")  # fmt: skip
+        raise MnerfError(
+            f"{run_dir} has no {path.name}: run `mnerf evaluate --run {run_dir} --split "
+            f"{split}` first (it saves the renders this reads)"
+        )
     try:
         result = json.loads(path.read_text())
     except json.JSONDecodeError as err:
@@ -61,8 +63,10 @@ def saved_renders(run_dir: Path, split: str, views: int | None = None) -> tuple[
         files = [folder / f"id{n}" / f"{name}.png" for name in chosen]
         missing = [str(f) for f in files if not f.is_file()]
         if missing:
-            raise MnerfError(f"{len(missing)} saved render(s) of ID {n} are missing (first: {missing[0]}); "
-                             f"run `mnerf evaluate --run {run_dir} --split {split}` again")  # fmt: skip
+            raise MnerfError(
+                f"{len(missing)} saved render(s) of ID {n} are missing (first: {missing[0]}); "
+                f"run `mnerf evaluate --run {run_dir} --split {split}` again"
+            )
         renders.append(np.stack([extract.load_image(f) for f in files]))
     return result, np.stack(renders)
 
@@ -125,8 +129,9 @@ def evaluate_attacks(
     evaluation, renders = saved_renders(run_dir, split, views)
     messages = np.asarray(keys.messages, np.float32)
     if renders.shape[0] != messages.shape[0]:
-        raise MnerfError(f"{run_dir}'s evaluation has {renders.shape[0]} IDs but its keys.json "
-                         f"{messages.shape[0]}")  # fmt: skip
+        raise MnerfError(
+            f"{run_dir}'s evaluation has {renders.shape[0]} IDs but its keys.json {messages.shape[0]}"
+        )
     n, v = renders.shape[:2]
     base = jax.random.PRNGKey(seed)
     order = [NO_ATTACK, *names]
@@ -164,10 +169,16 @@ def evaluate_attacks(
         "attacks": scores,
         "mean_over_attacks": {
             k: float(np.mean([s[k] for s in attacked_only]))
-            for k in ("bit_accuracy_mean", "bit_accuracy_min", "identification_accuracy",
-                      "verified_identification_accuracy")
-        } if attacked_only else None,
-    }  # fmt: skip
+            for k in (
+                "bit_accuracy_mean",
+                "bit_accuracy_min",
+                "identification_accuracy",
+                "verified_identification_accuracy",
+            )
+        }
+        if attacked_only
+        else None,
+    }
     rundir.write_json_atomic(run_dir / f"eval-{split}-attacks.json", result)
     return result
 
@@ -182,15 +193,19 @@ def attack_order(result: Mapping[str, Any]) -> list[str]:
 
 def format_table(result: Mapping[str, Any]) -> str:
     """The attacks as a text table: bits mean / worst ID, best match, named."""
-    lines = [f"{'attack (' + result['strength'] + ')':<16} {'bits':>8} {'worst ID':>9} {'best match':>11} "
-             f"{'named':>8}"]  # fmt: skip
+    lines = [
+        f"{'attack (' + result['strength'] + ')':<16} {'bits':>8} {'worst ID':>9} {'best match':>11} "
+        f"{'named':>8}"
+    ]
     rows = [(name, result["attacks"][name]) for name in attack_order(result)]
     if result.get("mean_over_attacks"):
         rows.append(("mean of attacks", result["mean_over_attacks"]))
     for name, s in rows:
         named = s["verified_identification_accuracy"]
-        lines.append(f"{name:<16} {s['bit_accuracy_mean']:>8.2%} {s['bit_accuracy_min']:>9.2%} "
-                     f"{s['identification_accuracy']:>11.2%} {named:>8.2%}")  # fmt: skip
+        lines.append(
+            f"{name:<16} {s['bit_accuracy_mean']:>8.2%} {s['bit_accuracy_min']:>9.2%} "
+            f"{s['identification_accuracy']:>11.2%} {named:>8.2%}"
+        )
     return "\n".join(lines)
 
 
@@ -202,11 +217,15 @@ def attacks_plot(path: Path, results: Mapping[str, Mapping[str, Any]]) -> Path:
     first = next(iter(results.values()))
     names = attack_order(first)
     if len(results) == 1:
-        bars = {"mean over IDs": [first["attacks"][k]["bit_accuracy_mean"] for k in names],
-                "worst ID": [first["attacks"][k]["bit_accuracy_min"] for k in names]}  # fmt: skip
+        bars = {
+            "mean over IDs": [first["attacks"][k]["bit_accuracy_mean"] for k in names],
+            "worst ID": [first["attacks"][k]["bit_accuracy_min"] for k in names],
+        }
     else:
-        bars = {label: [r["attacks"].get(k, {}).get("bit_accuracy_mean", np.nan) for k in names]
-                for label, r in results.items()}  # fmt: skip
+        bars = {
+            label: [r["attacks"].get(k, {}).get("bit_accuracy_mean", np.nan) for k in names]
+            for label, r in results.items()
+        }
     x = np.arange(len(names))
     width = 0.8 / len(bars)
     fig, ax = plt.subplots(figsize=(0.55 * len(names) + 5.0, 3.6))

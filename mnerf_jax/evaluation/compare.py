@@ -33,8 +33,14 @@ from mnerf_jax.core.errors import MnerfError
 
 # Watermark fields that say which seed ran or how the run was kept, not what was trained: runs that differ
 # only in them are seeds of one setting.
-IGNORED_BY_DEFAULT: tuple[str, ...] = ("seed", "key_seed", "time_budget_min", "phase3_reserve_min",
-                                       "checkpoint_every", "keep_checkpoints")  # fmt: skip
+IGNORED_BY_DEFAULT: tuple[str, ...] = (
+    "seed",
+    "key_seed",
+    "time_budget_min",
+    "phase3_reserve_min",
+    "checkpoint_every",
+    "keep_checkpoints",
+)
 
 # (figure, format, header) in table order.
 FIGURES: tuple[tuple[str, str, str], ...] = (
@@ -279,7 +285,7 @@ def to_json(groups: Sequence[Group]) -> dict[str, Any]:
                         "figures": dict(r.figures),
                     }
                     for r in g.runs
-                ],  # fmt: skip
+                ],
                 "stats": {f: _stats_record(g.stats(f)) for f, _, _ in FIGURES},
             }
             for g in groups
@@ -296,8 +302,11 @@ def tradeoff_plot(path: str | Path, groups: Sequence[Group]) -> Path:
 
     fig, ax = plt.subplots(figsize=(6.4, 4.6), dpi=120)
     for i, g in enumerate(groups):
-        pts = [(r.figures["bits"], r.figures["psnr_drop"]) for r in g.runs
-               if r.figures.get("bits") is not None and r.figures.get("psnr_drop") is not None]  # fmt: skip
+        pts = [
+            (r.figures["bits"], r.figures["psnr_drop"])
+            for r in g.runs
+            if r.figures.get("bits") is not None and r.figures.get("psnr_drop") is not None
+        ]
         if not pts:
             continue
         colour = f"C{i % 10}"

@@ -39,8 +39,9 @@ def decode_renders(decoder: Any, wm: Any, images: np.ndarray, batch: int = 16) -
     read window)."""
 
     images = np.asarray(images, np.float32)
-    return np.asarray(extract.decode(decoder.variables, images, decoder.wavelet, batch,
-                                     *read_window.of_config(wm.reading)))  # fmt: skip
+    return np.asarray(
+        extract.decode(decoder.variables, images, decoder.wavelet, batch, *read_window.of_config(wm.reading))
+    )
 
 
 def with_read_jitter(wm: Any, read_jitter: int | None) -> Any:
@@ -136,27 +137,35 @@ def evaluate_watermarked_run(
     for n in range(n_ids):
         logits = decode_renders(decoder, wm, renders[n])
         if save_pngs:
-            reloaded = np.stack([_save_and_reload_png(png_dir / f"id{n}" / f"{name}.png", img)
-                                 for name, img in zip(names, renders[n], strict=True)])  # fmt: skip
+            reloaded = np.stack(
+                [
+                    _save_and_reload_png(png_dir / f"id{n}" / f"{name}.png", img)
+                    for name, img in zip(names, renders[n], strict=True)
+                ]
+            )
         else:
             reloaded = round_to_8bit(np.asarray(renders[n]))
         logits_png = decode_renders(decoder, wm, reloaded)
         bits, bits_png = logits_to_bits(logits), logits_to_bits(logits_png)
         ident_n = identify_logits(logits, keys.messages, thr)
-        per_id.append({
-            "id": n,
-            "message": "".join(str(int(b)) for b in keys.messages[n]),
-            "bit_accuracy": float(bit_accuracy(bits, keys.messages[n]).mean()),
-            "bit_accuracy_png": float(bit_accuracy(bits_png, keys.messages[n]).mean()),
-            "bit_accuracy_per_view": bit_accuracy(bits, keys.messages[n]).tolist(),
-            # Of the views, the fraction reading each bit right: a render is named (binomial, 16 bits and
-            # 16 keys) only with every bit right, so one or two positions read wrong on most views keep an ID
-            # from being named where scattered errors would not (docs/experiments/).
-            "bit_accuracy_per_bit": (bits == np.asarray(keys.messages[n], np.uint8)[None]).mean(0).tolist(),
-            "identification_accuracy": float((ident_n.best_id == n).mean()),
-            "verified_identification_accuracy": float((ident_n.decision_by(test) == n).mean()),
-            "psnr": _quality(renders[n], gt, lpips_net)["psnr"],
-        })  # fmt: skip
+        per_id.append(
+            {
+                "id": n,
+                "message": "".join(str(int(b)) for b in keys.messages[n]),
+                "bit_accuracy": float(bit_accuracy(bits, keys.messages[n]).mean()),
+                "bit_accuracy_png": float(bit_accuracy(bits_png, keys.messages[n]).mean()),
+                "bit_accuracy_per_view": bit_accuracy(bits, keys.messages[n]).tolist(),
+                # Of the views, the fraction reading each bit right: a render is named (binomial, 16 bits and
+                # 16 keys) only with every bit right, so one or two positions read wrong on most views keep an
+                # ID from being named where scattered errors would not.
+                "bit_accuracy_per_bit": (bits == np.asarray(keys.messages[n], np.uint8)[None])
+                .mean(0)
+                .tolist(),
+                "identification_accuracy": float((ident_n.best_id == n).mean()),
+                "verified_identification_accuracy": float((ident_n.decision_by(test) == n).mean()),
+                "psnr": _quality(renders[n], gt, lpips_net)["psnr"],
+            }
+        )
         true_ids += [n] * n_views
         decoded.append(logits)
         decoded_png.append(logits_png)
@@ -193,9 +202,17 @@ def evaluate_watermarked_run(
         "per_id": per_id,
         "source_run": None if source is None else str(source.run_dir),
     }
-    result["identification"] = {k: result.pop(k) for k in ("threshold", "test", "min_attainable_p",
-                                                             "median_p_corrected", "confusion_best_match",
-                                                             "confusion_decision")}  # fmt: skip
+    result["identification"] = {
+        k: result.pop(k)
+        for k in (
+            "threshold",
+            "test",
+            "min_attainable_p",
+            "median_p_corrected",
+            "confusion_best_match",
+            "confusion_decision",
+        )
+    }
     result["identification"]["ids"] = list(range(n_ids))
     if clean is not None:
         vs_clean = _quality(stacked, np.tile(clean, (n_ids, 1, 1, 1)), lpips_net)
@@ -204,24 +221,39 @@ def evaluate_watermarked_run(
         clean_bits = logits_to_bits(clean_logits)
         clean_ident = identify_logits(clean_logits, keys.messages, thr, test)
         false_claims = false_detection_summary(clean_ident, n_ids)
-        result.update({
-            "psnr_clean_model": vs_clean["psnr"],
-            "ssim_clean_model": vs_clean["ssim"],
-            "lpips_clean_model": vs_clean["lpips"],
-            "clean_psnr": clean_q["psnr"],
-            "clean_ssim": clean_q["ssim"],
-            "clean_lpips": clean_q["lpips"],
-            "clean_bit_accuracy": float(np.mean([bit_accuracy(clean_bits, m).mean() for m in keys.messages])),
-            "clean_false_detection_rate": false_claims["false_detection_rate"],
-            "clean_false_detection_rate_by_test": false_claims["false_detection_rate_by_test"],
-            "clean_false_detection_ids": false_claims["claimed_per_id"],
-        })  # fmt: skip
+        result.update(
+            {
+                "psnr_clean_model": vs_clean["psnr"],
+                "ssim_clean_model": vs_clean["ssim"],
+                "lpips_clean_model": vs_clean["lpips"],
+                "clean_psnr": clean_q["psnr"],
+                "clean_ssim": clean_q["ssim"],
+                "clean_lpips": clean_q["lpips"],
+                "clean_bit_accuracy": float(
+                    np.mean([bit_accuracy(clean_bits, m).mean() for m in keys.messages])
+                ),
+                "clean_false_detection_rate": false_claims["false_detection_rate"],
+                "clean_false_detection_rate_by_test": false_claims["false_detection_rate_by_test"],
+                "clean_false_detection_ids": false_claims["claimed_per_id"],
+            }
+        )
     else:
-        result.update(dict.fromkeys((
-            "psnr_clean_model", "ssim_clean_model", "lpips_clean_model", "clean_psnr", "clean_ssim",
-            "clean_lpips", "clean_bit_accuracy", "clean_false_detection_rate", "clean_false_detection_ids",
-            "clean_false_detection_rate_by_test",
-        )))  # fmt: skip
+        result.update(
+            dict.fromkeys(
+                (
+                    "psnr_clean_model",
+                    "ssim_clean_model",
+                    "lpips_clean_model",
+                    "clean_psnr",
+                    "clean_ssim",
+                    "clean_lpips",
+                    "clean_bit_accuracy",
+                    "clean_false_detection_rate",
+                    "clean_false_detection_ids",
+                    "clean_false_detection_rate_by_test",
+                )
+            )
+        )
     rundir.write_json_atomic(run_dir / f"eval-{split}.json", result)
     if keep_renders:
         result = {**result, "_renders": renders, "_clean": clean, "_gt": gt}
@@ -262,8 +294,9 @@ def identify_images(
     saved = with_read_jitter(rundir.read_run_config(run_dir).watermark, read_jitter)
     thr = float(saved.reading.id_threshold if threshold is None else threshold)
     test = significance.check_test(saved.reading.id_test if test is None else test)
-    logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, batch_size,
-                                  *read_window.of_config(saved.reading))  # fmt: skip
+    logits = extract.decode_paths(
+        decoder.variables, paths, decoder.wavelet, batch_size, *read_window.of_config(saved.reading)
+    )
     ident = identify_logits(logits, keys.messages, thr, test)
     return [
         {

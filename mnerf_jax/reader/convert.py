@@ -241,9 +241,8 @@ def convert_torchscript_decoder(
 ) -> dict[str, Any]:
     """Convert a stable-signature / WateRF decoder zip (TorchScript or torch.save) to an mnerf decoder file.
 
-    The result is read with :func:`mnerf_jax.reader.decoder_io.load_decoder`. ``wavelet`` is recorded as the sub-band
-    the
-    decoder reads (WateRF feeds it LL2 of ``bior4.4``). Returns the written metadata.
+    The result is read with :func:`mnerf_jax.reader.decoder_io.load_decoder`. ``wavelet`` is recorded as the
+    sub-band the decoder reads (WateRF feeds it LL2 of ``bior4.4``). Returns the written metadata.
     """
     state = read_torch_zip(zip_path)
     variables, whitened = state_dict_to_variables(state)

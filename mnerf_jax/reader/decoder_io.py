@@ -3,7 +3,7 @@
 Files are ``.npz`` archives (read with ``allow_pickle=False``) holding one array per leaf plus a JSON metadata
 entry: bits, wavelet, pooling margin, training information and a fingerprint (sha256 of the weight bytes)
 that :func:`load_decoder` verifies. A decoder from any source (a file, the shipped one, a fresh one) comes as
-a :class:`LoadedDecoder`. The model itself (architecture, apply, whitening) is :mod:`mnerf_jax.reader.decoder`.
+a :class:`LoadedDecoder`. The model itself (architecture, apply, whitening) is :mod:`.decoder`.
 """
 
 from __future__ import annotations
@@ -229,10 +229,13 @@ def fresh_decoder(
     variables = fit_whitening(variables, batches)
     variables = jax.tree.map(lambda x: np.asarray(x, np.float32), variables)
     meta = {
-        "format": FORMAT, "version": FORMAT_VERSION, "bits": bits, "wavelet": wavelet,
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "bits": bits,
+        "wavelet": wavelet,
         "fresh": {"seed": seed, "whitening_images": len(images)},
         "fingerprint": fingerprint(variables),
-    }  # fmt: skip
+    }
     return LoadedDecoder(variables, bits, wavelet, meta, Path(FRESH))
 
 

@@ -153,7 +153,11 @@ def _agreement(bits: np.ndarray, messages: np.ndarray) -> np.ndarray:
 
 
 def _identification(
-    scores: np.ndarray, agree: np.ndarray, logits: np.ndarray, messages: np.ndarray, threshold: float,
+    scores: np.ndarray,
+    agree: np.ndarray,
+    logits: np.ndarray,
+    messages: np.ndarray,
+    threshold: float,
     test: str,
 ) -> Identification:
     """The key of highest ``scores [B, N]`` (−1 on a tie), judged by its agreeing bits ``agree [B, N]`` and by
@@ -196,9 +200,7 @@ def _by_test(ident: Identification, rate: Callable[[np.ndarray], float]) -> dict
     return {test: rate(ident.decision_by(test)) for test in significance.ID_TESTS}
 
 
-def identification_summary(
-    true_ids: Sequence[int], ident: Identification
-) -> dict[str, Any]:
+def identification_summary(true_ids: Sequence[int], ident: Identification) -> dict[str, Any]:
     """Identification accuracies and the confusion matrices (best match and decision) as plain data."""
     true = np.asarray(true_ids, np.int64)
 

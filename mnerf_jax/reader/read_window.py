@@ -38,8 +38,10 @@ SMOOTHING = 4
 def check_fraction(fraction: float, name: str = "the read window") -> None:
     """MnerfError unless ``fraction`` is in (0, 1] (``name``: what the message calls the setting)."""
     if not 0.0 < fraction <= 1.0:
-        raise MnerfError(f"{name} is a fraction of the image's shorter side, in (0, 1] (0: the whole image), "
-                         f"got {fraction}")  # fmt: skip
+        raise MnerfError(
+            f"{name} is a fraction of the image's shorter side, in (0, 1] (0: the whole image), "
+            f"got {fraction}"
+        )
 
 
 def window_side(height: int, width: int, fraction: float) -> int:
@@ -54,8 +56,12 @@ def foreground_weight(images: jax.Array, background: float) -> jax.Array:
     pad = SMOOTHING // 2
     smoothed = jax.lax.reduce_window(
         jnp.pad(distance, ((0, 0), (pad, SMOOTHING - 1 - pad), (pad, SMOOTHING - 1 - pad)), mode="edge"),
-        0.0, jax.lax.add, (1, SMOOTHING, SMOOTHING), (1, 1, 1), "VALID",
-    ) / (SMOOTHING * SMOOTHING)  # fmt: skip
+        0.0,
+        jax.lax.add,
+        (1, SMOOTHING, SMOOTHING),
+        (1, 1, 1),
+        "VALID",
+    ) / (SMOOTHING * SMOOTHING)
     return jnp.clip((smoothed - FOREGROUND_LOW) / (FOREGROUND_HIGH - FOREGROUND_LOW), 0.0, 1.0)
 
 
@@ -159,5 +165,8 @@ def of_config(reading: ReadingConfig) -> tuple[float, float | None, int]:
 def of_metadata(meta: Mapping[str, Any]) -> tuple[float, float | None, int]:
     """``(fraction, background, jitter)`` recorded in a decoder file's metadata by ``mnerf embed`` (a file
     without them reads the whole image, once)."""
-    return (float(meta.get("read_window", 0.0)), background_of(float(meta.get("read_background", 1.0))),
-            int(meta.get("read_jitter", 0)))  # fmt: skip
+    return (
+        float(meta.get("read_window", 0.0)),
+        background_of(float(meta.get("read_background", 1.0))),
+        int(meta.get("read_jitter", 0)),
+    )

@@ -272,8 +272,9 @@ def refit_due(step: int, phase_start: int, budgets: SampleBudgets | None = None)
 
 
 @functools.partial(jax.jit, static_argnames=("n_samples",))
-def _valid_samples_per_ray(rays_o: Array, rays_d: Array, geometry: raymarch.Geometry, key: Array,
-                           n_samples: int) -> Array:  # fmt: skip
+def _valid_samples_per_ray(
+    rays_o: Array, rays_d: Array, geometry: raymarch.Geometry, key: Array, n_samples: int
+) -> Array:
     """``[R]`` int32: training samples of each ray inside the aabb and the alpha mask (density count)."""
     t, _, _ = raymarch.sample_along_rays(rays_o, rays_d, geometry, key, n_samples)
     xyz = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]
@@ -281,8 +282,9 @@ def _valid_samples_per_ray(rays_o: Array, rays_d: Array, geometry: raymarch.Geom
     return jnp.sum(valid, axis=-1, dtype=jnp.int32)
 
 
-def estimate_density_count(rays: RaySet, geometry: raymarch.Geometry, batch: int, seed: int, salt: int,
-                           probe: int = 8192) -> float:  # fmt: skip
+def estimate_density_count(
+    rays: RaySet, geometry: raymarch.Geometry, batch: int, seed: int, salt: int, probe: int = 8192
+) -> float:
     """A high quantile (mean + 4 sd) of a batch's density count, from ``probe`` random rays.
 
     The count depends on the geometry and the rays only, not on the field, so this predicts the

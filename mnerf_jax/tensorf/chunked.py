@@ -36,9 +36,18 @@ def render_rays_exact(
     while True:
         db, cb = policy.budgets(site, n_rays, n_samples)
         out = render_rays(
-            fns, params, cond, rays_o, rays_d, geometry, key,
-            train=train, density_budget=db, colour_budget=cb, bg=bg,
-        )  # fmt: skip
+            fns,
+            params,
+            cond,
+            rays_o,
+            rays_d,
+            geometry,
+            key,
+            train=train,
+            density_budget=db,
+            colour_budget=cb,
+            bg=bg,
+        )
         if not policy.update(site, out, n_rays, n_samples):
             return out
 
@@ -81,8 +90,9 @@ def render_image(
         sl = np.minimum(np.arange(start, start + chunk), stop - 1)  # pad by repeating the last ray
         o, d = rays_o[sl], rays_d[sl]
         b = bg_arr[sl] if per_ray_bg else bg_arr
-        out = render_rays_exact(fns, params, cond, o, d, geometry, None, train=False, policy=policy,
-                                site="render_image", bg=b)  # fmt: skip
+        out = render_rays_exact(
+            fns, params, cond, o, d, geometry, None, train=False, policy=policy, site="render_image", bg=b
+        )
         for name in outs:
             outs[name].append(np.asarray(out[name])[: stop - start])
     return {

@@ -264,9 +264,14 @@ class Marched(NamedTuple):
 
 
 def march(
-    fns: FieldFns, params: Params, rays_o: Array, rays_d: Array, geometry: Geometry, key: Array | None,
+    fns: FieldFns,
+    params: Params,
+    rays_o: Array,
+    rays_d: Array,
+    geometry: Geometry,
+    key: Array | None,
     density_budget: int | None,
-) -> Marched:  # fmt: skip
+) -> Marched:
     """Sample the rays (jittered when ``key`` is given), evaluate density where the sample is inside the
     aabb and the alpha mask (in a buffer of ``density_budget`` slots, or densely for ``None``) and
     composite the weights: the first half of :func:`render_rays`, shared with :func:`colour_samples`."""

@@ -87,9 +87,16 @@ def load_tensorf_run(run_dir: str | Path, step: int | None = None) -> LoadedRun:
     finally:
         store.close()
     return LoadedRun(
-        run_dir=run_dir, kind=TENSORF_KIND, config=config, marker=marker, params=state.params,
-        geometry=state.geometry, field_fns=render.tensorf_field_fns(config.model), cond=None,
-        step=int(meta["step"]), meta=meta,
+        run_dir=run_dir,
+        kind=TENSORF_KIND,
+        config=config,
+        marker=marker,
+        params=state.params,
+        geometry=state.geometry,
+        field_fns=render.tensorf_field_fns(config.model),
+        cond=None,
+        step=int(meta["step"]),
+        meta=meta,
     )
 
 
@@ -117,8 +124,18 @@ def render_views(
     images = []
     for i in indices:
         o, d = camera_rays(cameras, int(i))
-        out = chunked.render_image(run.field_fns, run.params, run.cond, o, d, run.geometry, cameras.height,
-                                  cameras.width, chunk=chunk, policy=policy)  # fmt: skip
+        out = chunked.render_image(
+            run.field_fns,
+            run.params,
+            run.cond,
+            o,
+            d,
+            run.geometry,
+            cameras.height,
+            cameras.width,
+            chunk=chunk,
+            policy=policy,
+        )
         rgb = out["rgb"].astype(np.float32)
         images.append(rgb)
         if on_view is not None:

@@ -263,9 +263,14 @@ def deferred_grad(
 
 
 def _deferred_result(
-    loss_img: jax.Array, aux: Any, loss_patches: jax.Array, stats: dict[str, jax.Array], image: jax.Array,
-    grads: PyTree, g_extra: PyTree,
-) -> tuple[jax.Array, Any, jax.Array, PyTree, PyTree]:  # fmt: skip
+    loss_img: jax.Array,
+    aux: Any,
+    loss_patches: jax.Array,
+    stats: dict[str, jax.Array],
+    image: jax.Array,
+    grads: PyTree,
+    g_extra: PyTree,
+) -> tuple[jax.Array, Any, jax.Array, PyTree, PyTree]:
     """``deferred_grad``'s return value: the image loss's aux plus the largest per-patch render stats and
     both loss parts."""
     aux = dict(aux) if isinstance(aux, dict) else {"image_aux": aux}

@@ -25,9 +25,9 @@ shifted back to end at the image border, so patches may overlap there. Each pixe
 image value and its image-loss gradient come from that patch only, while patch losses see whole patches. The
 same per-patch PRNG keys are used in steps 1 and 3, so a jittered render is reproduced exactly.
 
-Each step draws one training view and ``watermark.schedule.ids_per_step`` distinct IDs (default: every ID, at most
-16), deterministically from the seed and the step so that a resumed run follows the same path, renders the
-view with each ID's FiLM conditioning and takes one optimiser step on the mean of their objectives (Adam,
+Each step draws one training view and ``watermark.schedule.ids_per_step`` distinct IDs (default: every ID, at
+most 16), deterministically from the seed and the step so that a resumed run follows the same path, renders
+the view with each ID's FiLM conditioning and takes one optimiser step on the mean of their objectives (Adam,
 per-group learning rates, exponential decay over both phases). The IDs share one render's geometry and every
 colour layer but the last (``watermark.condition_many``), so each ID learns more often for much less than
 K renders' cost.
@@ -86,11 +86,15 @@ def load_source(run_dir: str | Path) -> runs.LoadedRun:
         raise EmbedError(f"--from {run_dir}: no such run directory")
     marker = rundir.read_marker(run_dir)
     if marker is None:
-        raise EmbedError(f"--from {run_dir} is not a fitted TensoRF run (no {rundir.RUN_MARKER}; make one with "
-                         "`mnerf fit`)")  # fmt: skip
+        raise EmbedError(
+            f"--from {run_dir} is not a fitted TensoRF run (no {rundir.RUN_MARKER}; make one with "
+            "`mnerf fit`)"
+        )
     if marker.get("kind") != rundir.TENSORF_KIND:
-        raise EmbedError(f"--from {run_dir} holds a {marker.get('kind')!r} run, not a fitted TensoRF "
-                         "(watermark the TensoRF run it came from)")  # fmt: skip
+        raise EmbedError(
+            f"--from {run_dir} holds a {marker.get('kind')!r} run, not a fitted TensoRF "
+            "(watermark the TensoRF run it came from)"
+        )
     return wm_run.load_run(run_dir)
 
 
@@ -104,8 +108,9 @@ def load_decoder_for(bits: int, path: str | Path | None) -> decoder_io.LoadedDec
     return loaded
 
 
-def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequence[str], num_ids: int,
-                   bits: int) -> Config:  # fmt: skip
+def resolve_config(
+    source: runs.LoadedRun, preset: str | None, overrides: Sequence[str], num_ids: int, bits: int
+) -> Config:
     """The embedding config: the source run's data/model/render, the watermark section from ``preset``
     (default: the source's), then ``--set`` overrides, then ``num_ids`` and ``bits``."""
     base = source.config
@@ -113,8 +118,10 @@ def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequen
         base = dataclasses.replace(base, watermark=config_lib.load_preset(preset).watermark)
     config = config_lib.apply_overrides(base, overrides)
     if config.model != source.config.model or config.data != source.config.data:
-        raise EmbedError("--set may not change model.* or data.* of a fitted run (the embedding keeps its "
-                         "arrays and scene)")  # fmt: skip
+        raise EmbedError(
+            "--set may not change model.* or data.* of a fitted run (the embedding keeps its "
+            "arrays and scene)"
+        )
     config = dataclasses.replace(
         config, watermark=dataclasses.replace(config.watermark, num_ids=int(num_ids), bits=int(bits))
     )
@@ -130,13 +137,17 @@ def resolve_config(source: runs.LoadedRun, preset: str | None, overrides: Sequen
     except augment.AugmentError as err:
         raise EmbedError(f"watermark.augment.names / per_step: {err}") from None
     if cfg.reading.wavelet not in dwt.DEC_LO:
-        raise EmbedError(f"unknown watermark.reading.wavelet {cfg.reading.wavelet!r} ({' | '.join(dwt.DEC_LO)})")
+        raise EmbedError(
+            f"unknown watermark.reading.wavelet {cfg.reading.wavelet!r} ({' | '.join(dwt.DEC_LO)})"
+        )
     if cfg.reading.window:
         read_window.check_fraction(cfg.reading.window, "watermark.reading.window")
     if cfg.reading.jitter < 0 or (cfg.reading.jitter and not cfg.reading.window):
-        raise EmbedError(f"watermark.reading.jitter is a radius in pixels ≥ 0 that moves the read window, and "
-                         f"needs watermark.reading.window > 0; got {cfg.reading.jitter} with read_window "
-                         f"{cfg.reading.window}")  # fmt: skip
+        raise EmbedError(
+            f"watermark.reading.jitter is a radius in pixels ≥ 0 that moves the read window, and "
+            f"needs watermark.reading.window > 0; got {cfg.reading.jitter} with read_window "
+            f"{cfg.reading.window}"
+        )
     if total_steps(config.watermark) < 1:
         raise EmbedError("watermark.schedule.phase1_steps + watermark.schedule.phase2_steps must be ≥ 1")
     return config
@@ -163,7 +174,11 @@ def watermark_defaults_drift(run_dir: str | Path, overrides: Iterable[str] = ())
         return []
     was, now = config_lib.flat_items(recorded.watermark), config_lib.flat_items(today)
     skip = set(config_lib.flat_items(overridden))
-    return [f"{name} {was[name]!r} (today {now[name]!r})" for name in now if name not in skip and was[name] != now[name]]
+    return [
+        f"{name} {was[name]!r} (today {now[name]!r})"
+        for name in now
+        if name not in skip and was[name] != now[name]
+    ]
 
 
 def _has_checkpoints(out: Path) -> bool:
@@ -222,8 +237,10 @@ def embed(
     split = scene.split("train")
     check_rgb_images(split.images, f"{data_path or source.data_path or 'procedural scene'} (train split)")
     if cfg.phase3.steps and cfg.phase3.views and split.cameras.ndc is not None:
-        raise EmbedError("watermark.phase3.views renders novel views around the cameras of an object-centred "
-                         "scene; this one is forward-facing: set watermark.phase3.views=0")  # fmt: skip
+        raise EmbedError(
+            "watermark.phase3.views renders novel views around the cameras of an object-centred "
+            "scene; this one is forward-facing: set watermark.phase3.views=0"
+        )
     if loaded is None:
         loaded = decoder_io.fresh_decoder(bits, split.images, seed=cfg.seed, wavelet=cfg.reading.wavelet)
     decoder_source = decoder_io.FRESH if fresh else str(Path(loaded.path).resolve())
@@ -234,8 +251,10 @@ def embed(
     layout = patch_layout(height, width, tiling_patch_size(height, width, side, losses.SSIM_WINDOW))
     if cfg.losses.lambda_ssim and layout.size < losses.SSIM_WINDOW:
         window = losses.SSIM_WINDOW
-        raise EmbedError(f"patches of {layout.size} px (images {height}×{width}, watermark.schedule.patch_size "
-                         f"{cfg.schedule.patch_size}) are below SSIM's {window}×{window} window")  # fmt: skip
+        raise EmbedError(
+            f"patches of {layout.size} px (images {height}×{width}, watermark.schedule.patch_size "
+            f"{cfg.schedule.patch_size}) are below SSIM's {window}×{window} window"
+        )
 
     store = CheckpointStore(out, keep=max(cfg.keep_checkpoints, 1))
     # A fitted field keeps most of its in-mask samples for colour, so the colour buffer starts as large as the
@@ -268,17 +287,29 @@ def embed(
             dec_vars = dict(loaded.variables)  # params, BatchNorm statistics, pooling margin if any
             tx = make_optimizer(cfg, config.train.adam_b1, config.train.adam_b2)
             state = EmbedState(
-                params=params, decoder=dec_vars,
+                params=params,
+                decoder=dec_vars,
                 opt_state=tx.init({"field": params, "decoder": dec_vars["params"]}),
-                step=jnp.zeros((), jnp.int32), key=jax.random.fold_in(root, 0xE3B),
-            )  # fmt: skip
+                step=jnp.zeros((), jnp.int32),
+                key=jax.random.fold_in(root, 0xE3B),
+            )
             geometry = source.geometry
             data = data_path if data_path is not None else source.data_path
-            rundir.write_run_files(out, config, data=data, kind=WM_KIND, extra={
-                "source_run": str(source.run_dir.resolve()), "source_step": source.step, "num_ids": num_ids,
-                "bits": bits, "variant": cfg.variant, "decoder_source": decoder_source,
-                "decoder_source_fingerprint": loaded.fingerprint,
-            })  # fmt: skip
+            rundir.write_run_files(
+                out,
+                config,
+                data=data,
+                kind=WM_KIND,
+                extra={
+                    "source_run": str(source.run_dir.resolve()),
+                    "source_step": source.step,
+                    "num_ids": num_ids,
+                    "bits": bits,
+                    "variant": cfg.variant,
+                    "decoder_source": decoder_source,
+                    "decoder_source_fingerprint": loaded.fingerprint,
+                },
+            )
             keys_lib.save_keys(out, keys)
         vgg = losses.vgg_params() if cfg.losses.perceptual == "vgg" and cfg.losses.lambda_perceptual else None
         # Committed to the device from the start, as every later step's state is (a step's outputs are): an
@@ -289,10 +320,26 @@ def embed(
             cache = sample_cache.build_cache(state.params, geometry, config.model, split.cameras, progress)
         references = None
         if uses_clean_renders(cfg):  # from the cached samples when there are some: the same renders
-            references = (clean_references(source, split, progress) if cache is None else
-                          sample_cache.clean_renders(cache, geometry.white_bg).reshape(split.images.shape))
-        loop = EmbedLoop(config, split, keys, layout, geometry, policy, store, out, progress, on_step, vgg,
-                         references, cache=cache)  # fmt: skip
+            references = (
+                clean_references(source, split, progress)
+                if cache is None
+                else sample_cache.clean_renders(cache, geometry.white_bg).reshape(split.images.shape)
+            )
+        loop = EmbedLoop(
+            config,
+            split,
+            keys,
+            layout,
+            geometry,
+            policy,
+            store,
+            out,
+            progress,
+            on_step,
+            vgg,
+            references,
+            cache=cache,
+        )
         result = loop.run(state, stop_at, started)
         cfg = loop.config.watermark  # the budget may have sized the field's schedule
         field_done = result.steps == total_steps(cfg) and (stop_at is None or stop_at > result.steps)
@@ -314,12 +361,15 @@ def check_phase3_unchanged(meta: dict[str, Any], config: Config, out: Path) -> N
     ran = config_lib.from_dict(meta["config"]).watermark.phase3
     now = config.watermark.phase3
     if ran != now:
-        raise EmbedError(f"{out} has finished its phase 3 (step {meta['step']}) with {ran}, not {now}; "
-                         "a decoder is refitted once: resume with those settings, or embed anew")  # fmt: skip
+        raise EmbedError(
+            f"{out} has finished its phase 3 (step {meta['step']}) with {ran}, not {now}; "
+            "a decoder is refitted once: resume with those settings, or embed anew"
+        )
 
 
-def refit_phase(loop: EmbedLoop, result: EmbedResult, split: Any, source: runs.LoadedRun,
-                progress: bool) -> EmbedResult:  # fmt: skip
+def refit_phase(
+    loop: EmbedLoop, result: EmbedResult, split: Any, source: runs.LoadedRun, progress: bool
+) -> EmbedResult:
     """Phase 3 on the field ``result`` ended with (saved in ``loop.out``; the time budget may have ended it
     before its schedule did): the decoder alone (``decoder_refit``, its schedule sized to the budget's
     minutes left), then a checkpoint at step ``phase-1 + phase-2 steps`` (the field's schedule, wherever the
@@ -331,26 +381,38 @@ def refit_phase(loop: EmbedLoop, result: EmbedResult, split: Any, source: runs.L
     run = wm_run.load_watermarked_run(loop.out)
     seen = None  # the training views' renders, from the cached samples when the source was cached
     if loop.cache is not None:
-        seen = sample_cache.every_id_renders(loop.cache, run.params, cfg, loop.keys.num_ids,
-                                             run.geometry.white_bg)  # fmt: skip
+        seen = sample_cache.every_id_renders(
+            loop.cache, run.params, cfg, loop.keys.num_ids, run.geometry.white_bg
+        )
         seen = {n: r.reshape(split.images.shape) for n, r in seen.items()}
-    data = decoder_refit.render_refit_set(run, split.cameras, cfg, split.images, source, progress,
-                                          loop.references, seen)  # fmt: skip
+    data = decoder_refit.render_refit_set(
+        run, split.cameras, cfg, split.images, source, progress, loop.references, seen
+    )
     keep_going, seconds_left = lambda: True, None
     if clock is not None:
         keep_going = lambda: clock.room_for(0.0, time.perf_counter())  # noqa: E731
         seconds_left = lambda: clock.seconds_left(time.perf_counter())  # noqa: E731
-    decoder, metrics = decoder_refit.refit_decoder(cfg, result.state.decoder, data, keep_going=keep_going,
-                                                   seconds_left=seconds_left, progress=progress)  # fmt: skip
+    decoder, metrics = decoder_refit.refit_decoder(
+        cfg, result.state.decoder, data, keep_going=keep_going, seconds_left=seconds_left, progress=progress
+    )
     if not metrics["steps"]:  # no time for a decoder step: the run stays the field it was (resumable)
         return result
     steps = total_steps(cfg) + int(metrics["steps"])
     state = result.state.replace(decoder=decoder, step=jnp.asarray(steps, jnp.int32))
     rundir.write_json_atomic(loop.out / rundir.CONFIG_FILE, loop.config.to_dict())  # now with its phase 3
     loop.save(state)
-    last = {**result.last_metrics, "phase": 3.0, "phase3_loss": metrics["loss"], "field_steps": result.steps,
-            "phase3_steps": metrics["steps"], "phase3_scheduled": metrics["scheduled"]}  # fmt: skip
-    return dataclasses.replace(result, steps=steps, seconds=result.seconds + time.perf_counter() - tick,
-                               last_metrics=last, state=state)  # fmt: skip
-
-
+    last = {
+        **result.last_metrics,
+        "phase": 3.0,
+        "phase3_loss": metrics["loss"],
+        "field_steps": result.steps,
+        "phase3_steps": metrics["steps"],
+        "phase3_scheduled": metrics["scheduled"],
+    }
+    return dataclasses.replace(
+        result,
+        steps=steps,
+        seconds=result.seconds + time.perf_counter() - tick,
+        last_metrics=last,
+        state=state,
+    )

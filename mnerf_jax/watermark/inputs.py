@@ -57,8 +57,9 @@ def clean_references(source: runs.LoadedRun, split: Any, progress: bool = False)
     The embedding's renders jitter their samples; a clean field's jittered and unjittered renders differ far
     less than any useful budget allows. float16 holds [0, 1] to 2.4e-4 and halves the memory.
     """
-    bar = tqdm(total=len(split.cameras), disable=not progress, desc="clean renders", unit="view",
-               dynamic_ncols=True)  # fmt: skip
+    bar = tqdm(
+        total=len(split.cameras), disable=not progress, desc="clean renders", unit="view", dynamic_ncols=True
+    )
     try:
         images = runs.render_views(source, split.cameras, on_view=lambda *_: bar.update(1))
     finally:

@@ -60,8 +60,13 @@ def checkpoint_tree(state: EmbedState, geometry: raymarch.Geometry) -> dict[str,
     }
 
 
-def checkpoint_meta(config: Config, state: EmbedState, geometry: raymarch.Geometry, keys: keys_lib.KeySet,
-                     budgets: tuple[int, int]) -> dict[str, Any]:  # fmt: skip
+def checkpoint_meta(
+    config: Config,
+    state: EmbedState,
+    geometry: raymarch.Geometry,
+    keys: keys_lib.KeySet,
+    budgets: tuple[int, int],
+) -> dict[str, Any]:
     step = int(state.step)
     return {
         "kind": WM_KIND,
@@ -120,7 +125,9 @@ class EmbedLoop:
     vgg: Any
     references: np.ndarray | None = None  # clean renders of the training views (wm_step.uses_clean_renders)
     clock: embed_budget.BudgetClock | None = None  # watermark.time_budget.minutes, when set
-    cache: sample_cache.SampleCache | None = None  # watermark.schedule.cache_source: the fitted field's samples
+    cache: sample_cache.SampleCache | None = (
+        None  # watermark.schedule.cache_source: the fitted field's samples
+    )
 
     def __post_init__(self) -> None:
         # What every step passes unchanged, made once rather than per step.
@@ -175,15 +182,25 @@ class EmbedLoop:
             budget = metrics_lib.psnr_to_mse(fidelity_budget_db(cfg, step, self._total_steps))
             batch["fidelity_mse"] = np.float32(budget)
         db, cb = self.budgets() if self.cache is None else (0, 0)  # a cached render marches no ray
-        spec = StepSpec(model=self.config.model, wm=self._step_cfg, adam_b1=self.config.train.adam_b1,
-                        adam_b2=self.config.train.adam_b2, phase=phase, height=self.layout.height,
-                        width=self.layout.width, density_budget=db, colour_budget=cb)  # fmt: skip
-        new_state, metrics = embed_step(state, self.geometry, batch, self._index, self._owner, self.vgg,
-                                        self._total, spec=spec)  # fmt: skip
+        spec = StepSpec(
+            model=self.config.model,
+            wm=self._step_cfg,
+            adam_b1=self.config.train.adam_b1,
+            adam_b2=self.config.train.adam_b2,
+            phase=phase,
+            height=self.layout.height,
+            width=self.layout.width,
+            density_budget=db,
+            colour_budget=cb,
+        )
+        new_state, metrics = embed_step(
+            state, self.geometry, batch, self._index, self._owner, self.vgg, self._total, spec=spec
+        )
         host = {k: float(v) for k, v in jax.device_get(metrics).items()}
         counts = {k: int(host[k]) for k in ("density_count", "colour_count")}
-        if self.cache is None and self.policy.update(BUDGET_SITE, counts, self.layout.size**2,
-                                                     self.geometry.n_samples):  # fmt: skip
+        if self.cache is None and self.policy.update(
+            BUDGET_SITE, counts, self.layout.size**2, self.geometry.n_samples
+        ):
             return None
         host.update(phase=float(phase), id=float(ids[0]), view=float(view))
         return new_state, host
@@ -200,8 +217,14 @@ class EmbedLoop:
         stop = total if stop_at is None else min(int(stop_at), total)
         start = step = int(state.step)
         every = max(int(cfg.checkpoint_every), 1)
-        bar = tqdm(total=stop, initial=start, disable=not self.progress, desc="embed", unit="step",
-                   dynamic_ncols=True)  # fmt: skip
+        bar = tqdm(
+            total=stop,
+            initial=start,
+            disable=not self.progress,
+            desc="embed",
+            unit="step",
+            dynamic_ncols=True,
+        )
         recent: list[tuple[float, float, float]] = []
         last: dict[str, float] = {}
         redone = 0
@@ -221,14 +244,19 @@ class EmbedLoop:
                     self.clock.record_step(time.perf_counter() - tick)
                 new_state, host = out
                 if not all(np.isfinite(v) for v in host.values()):
-                    raise EmbedError(f"step {step}: the loss is not finite ({host['loss']}); lower the "
-                                     "learning rates (watermark.lr_*)")  # fmt: skip
+                    raise EmbedError(
+                        f"step {step}: the loss is not finite ({host['loss']}); lower the "
+                        "learning rates (watermark.lr_*)"
+                    )
                 state, step = new_state, step + 1
                 last = host
                 recent = [*recent, (host["bit_acc"], host["psnr"], host.get("psnr_clean", np.nan))][-20:]
                 bar.update(1)
-                shown = {"phase": int(host["phase"]), "bit_acc": f"{np.mean([r[0] for r in recent]):.3f}",
-                         "psnr": f"{np.mean([r[1] for r in recent]):.2f}"}  # fmt: skip
+                shown = {
+                    "phase": int(host["phase"]),
+                    "bit_acc": f"{np.mean([r[0] for r in recent]):.3f}",
+                    "psnr": f"{np.mean([r[1] for r in recent]):.2f}",
+                }
                 if "psnr_clean" in host:  # against the clean model's render (the quality budget)
                     shown["psnr_clean"] = f"{np.mean([r[2] for r in recent]):.2f}"
                     shown["budget"] = f"{host['psnr_budget']:.1f}"
@@ -242,13 +270,25 @@ class EmbedLoop:
             bar.close()
             log.close()
         if stopped_by_budget and self.progress:
-            after = ("phase 3 follows in the minutes kept for it" if self.clock and self.clock.kept_s
-                     else "--resume continues it")  # fmt: skip
-            tqdm.write(f"embed: the time budget ({cfg.time_budget.minutes:g} min) ends the field at step {step} "
-                      f"of {total}; {after}")  # fmt: skip
+            after = (
+                "phase 3 follows in the minutes kept for it"
+                if self.clock and self.clock.kept_s
+                else "--resume continues it"
+            )
+            tqdm.write(
+                f"embed: the time budget ({cfg.time_budget.minutes:g} min) ends the field at step {step} "
+                f"of {total}; {after}"
+            )
         saved_there = step % every == 0 or step == cfg.schedule.phase1_steps
         if (stopped_by_budget and not saved_there) or not (self.out / DECODER_FILE).is_file():
             self.save(state)
-        return EmbedResult(run_dir=self.out, keys=self.keys, steps=int(state.step),
-                           seconds=time.perf_counter() - t0, last_metrics=last, redone_steps=redone,
-                           stopped_by_budget=stopped_by_budget, state=state)  # fmt: skip
+        return EmbedResult(
+            run_dir=self.out,
+            keys=self.keys,
+            steps=int(state.step),
+            seconds=time.perf_counter() - t0,
+            last_metrics=last,
+            redone_steps=redone,
+            stopped_by_budget=stopped_by_budget,
+            state=state,
+        )

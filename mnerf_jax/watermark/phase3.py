@@ -57,8 +57,9 @@ class RefitSet:
     negatives: Any
 
 
-def novel_cameras(cameras: Cameras, count: int, seed: int, density: str = "angles",
-                  margin_deg: float = 0.0) -> Cameras:  # fmt: skip
+def novel_cameras(
+    cameras: Cameras, count: int, seed: int, density: str = "angles", margin_deg: float = 0.0
+) -> Cameras:
     """``count`` cameras around object-centred ``cameras``, looking at their focus point
     (``trajectory.focus_point``), with the first camera's intrinsics: azimuth uniform, distance uniform within
     the given cameras' range, elevation within theirs widened by ``margin_deg`` degrees on either side
@@ -94,15 +95,26 @@ def novel_cameras(cameras: Cameras, count: int, seed: int, density: str = "angle
     first = np.zeros(count, np.int64)
     return Cameras(
         c2w=np.stack([trajectory.look_at(p, centre, axis) for p in pos]) if count else np.zeros((0, 3, 4)),
-        fx=cameras.fx[first], fy=cameras.fy[first], cx=cameras.cx[first], cy=cameras.cy[first],
-        distortion=cameras.distortion[first], width=cameras.width, height=cameras.height,
-    )  # fmt: skip
+        fx=cameras.fx[first],
+        fy=cameras.fy[first],
+        cx=cameras.cx[first],
+        cy=cameras.cy[first],
+        distortion=cameras.distortion[first],
+        width=cameras.width,
+        height=cameras.height,
+    )
 
 
-def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_truth: np.ndarray,
-                     clean_model: Any = None, progress: bool = False,
-                     clean_renders: np.ndarray | None = None,
-                     training_renders: dict[int, np.ndarray] | None = None) -> RefitSet:  # fmt: skip
+def render_refit_set(
+    run: Any,
+    cameras: Cameras,
+    cfg: WatermarkConfig,
+    ground_truth: np.ndarray,
+    clean_model: Any = None,
+    progress: bool = False,
+    clean_renders: np.ndarray | None = None,
+    training_renders: dict[int, np.ndarray] | None = None,
+) -> RefitSet:
     """Phase 3's training set from a loaded watermarked run (``wm_run.load_watermarked_run``): every ID's
     renders of ``cameras`` (the training views) and of ``watermark.phase3.views`` novel views
     (:func:`novel_cameras`, seeded by ``watermark.seed``), rendered as evaluation renders them (no jitter).
@@ -122,12 +134,24 @@ def render_refit_set(run: Any, cameras: Cameras, cfg: WatermarkConfig, ground_tr
     keys = run.extras["keys"]
     sets = [cameras]
     if cfg.phase3.views:
-        sets.append(novel_cameras(cameras, int(cfg.phase3.views), int(cfg.seed), cfg.phase3.view_density,
-                                  cfg.phase3.elevation_margin))  # fmt: skip
+        sets.append(
+            novel_cameras(
+                cameras,
+                int(cfg.phase3.views),
+                int(cfg.seed),
+                cfg.phase3.view_density,
+                cfg.phase3.elevation_margin,
+            )
+        )
     to_draw = sets if training_renders is None else sets[1:]
     views = sum(len(c) for c in to_draw)
-    bar = tqdm(total=views * keys.num_ids, disable=not progress, desc="embed phase 3 (renders)",
-               unit="render", dynamic_ncols=True)  # fmt: skip
+    bar = tqdm(
+        total=views * keys.num_ids,
+        disable=not progress,
+        desc="embed phase 3 (renders)",
+        unit="render",
+        dynamic_ncols=True,
+    )
     tick = lambda _, rgb: bar.update(rgb.shape[-1] // 3)  # noqa: E731  (a view's renders: one per ID)
     try:
         parts = [] if training_renders is None else [training_renders]
@@ -198,16 +222,23 @@ def make_refit_step(
         rounded = jnp.round(images * 255.0) / 255.0
         images = jnp.where(jax.random.bernoulli(k_round, 0.5, (images.shape[0], 1, 1, 1)), rounded, images)
         if cfg.augment.prob > 0 and cfg.augment.per_step > 0:
-            images = augment.random_policy(k_aug, images, cfg.augment.strength, k=cfg.augment.per_step,
-                                           p=cfg.augment.prob, names=cfg.augment.names or None)  # fmt: skip
+            images = augment.random_policy(
+                k_aug,
+                images,
+                cfg.augment.strength,
+                k=cfg.augment.per_step,
+                p=cfg.augment.prob,
+                names=cfg.augment.names or None,
+            )
         return dwt.ll2(read_window.read_window(images, window, background), cfg.reading.wavelet)
 
     def logits_of(params: PyTree, ll2: jax.Array) -> jax.Array:
         return decoder_lib.apply_ll2({**decoder_state, "params": params}, ll2)
 
     @xla_cpu.jit_cpu_tuned
-    def step(params: PyTree, opt_state: Any, key: jax.Array, data: RefitSet, index: Any,
-             total: Any) -> tuple[PyTree, Any, jax.Array]:  # fmt: skip
+    def step(
+        params: PyTree, opt_state: Any, key: jax.Array, data: RefitSet, index: Any, total: Any
+    ) -> tuple[PyTree, Any, jax.Array]:
         k_id, k_view, k_neg, k_pos, k_clean = jax.random.split(key, 5)
         n_ids, n_views = data.renders.shape[:2]
         ids = jax.random.randint(k_id, (batch,), 0, n_ids)
@@ -219,9 +250,13 @@ def make_refit_step(
 
         def loss_fn(p: PyTree) -> jax.Array:
             z = logits_of(p, seen)
-            loss = cfg.losses.lambda_message * losses.bce_with_logits(z, messages[ids], cfg.losses.bce_temperature)
+            loss = cfg.losses.lambda_message * losses.bce_with_logits(
+                z, messages[ids], cfg.losses.bce_temperature
+            )
             if cfg.losses.lambda_key:
-                loss = loss + cfg.losses.lambda_key * losses.key_cross_entropy(z, messages, ids, cfg.losses.bce_temperature)
+                loss = loss + cfg.losses.lambda_key * losses.key_cross_entropy(
+                    z, messages, ids, cfg.losses.bce_temperature
+                )
             if n_neg:
                 z_clean = logits_of(p, clean)
                 clean_bce = losses.bce_with_logits(z_clean, 0.5, cfg.losses.bce_temperature)
@@ -267,8 +302,9 @@ def refit_decoder(
     total = int(cfg.phase3.steps)
     done = 0
     timed: list[float] = []
-    bar = tqdm(total=total, disable=not progress, desc="embed phase 3 (decoder)", unit="step",
-               dynamic_ncols=True)  # fmt: skip
+    bar = tqdm(
+        total=total, disable=not progress, desc="embed phase 3 (decoder)", unit="step", dynamic_ncols=True
+    )
     try:
         while done < total:
             if not keep_going():
@@ -280,8 +316,9 @@ def refit_decoder(
                 bar.total = total
                 bar.refresh()
             tick = time.perf_counter()
-            params, opt_state, loss = step(params, opt_state, jax.random.fold_in(key, done), arrays,
-                                           jnp.int32(done), jnp.int32(total))  # fmt: skip
+            params, opt_state, loss = step(
+                params, opt_state, jax.random.fold_in(key, done), arrays, jnp.int32(done), jnp.int32(total)
+            )
             if seconds_left is not None and 1 <= done <= SIZING_STEPS:  # the first step compiles: not timed
                 jax.block_until_ready(loss)
                 timed.append(time.perf_counter() - tick)
@@ -291,5 +328,8 @@ def refit_decoder(
             bar.update(1)
     finally:
         bar.close()
-    return {**decoder_vars, "params": params}, {"steps": float(done), "scheduled": float(total),
-                                                "loss": float(loss)}  # fmt: skip
+    return {**decoder_vars, "params": params}, {
+        "steps": float(done),
+        "scheduled": float(total),
+        "loss": float(loss),
+    }

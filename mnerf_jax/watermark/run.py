@@ -47,7 +47,9 @@ def fingerprint_config(config: Config) -> Config:
     """The config with everything that does not change the embedding's trajectory at its default
     (``trajectory`` metadata: the time budget, phase 3, how renders are read, checkpointing), so a run may be
     resumed with those changed; and the fit's schedule, which the embedding does not read."""
-    return dataclasses.replace(config, train=TrainConfig(), watermark=normalised(config.watermark, "trajectory"))
+    return dataclasses.replace(
+        config, train=TrainConfig(), watermark=normalised(config.watermark, "trajectory")
+    )
 
 
 def normalised_meta(meta: dict[str, Any]) -> dict[str, Any]:
@@ -61,6 +63,8 @@ def normalised_meta(meta: dict[str, Any]) -> dict[str, Any]:
 
 
 SECTIONS = ("data", "model", "render", "watermark")
+
+
 def state_target(
     config: Config, meta: dict[str, Any], optimizer: OptimizerFactory | None = None
 ) -> dict[str, Any]:
@@ -89,8 +93,9 @@ def state_target(
     return target
 
 
-def restore(store: CheckpointStore, run_dir: Path, step: int | None = None,
-            optimizer: OptimizerFactory | None = None) -> tuple[Config, dict, dict]:  # fmt: skip
+def restore(
+    store: CheckpointStore, run_dir: Path, step: int | None = None, optimizer: OptimizerFactory | None = None
+) -> tuple[Config, dict, dict]:
     """``(config, checkpoint tree, meta)`` of an embedding checkpoint (with the optimiser state when
     ``optimizer``, the embedding's ``make_optimizer``, is given)."""
     meta = store.read_meta(step)
@@ -122,17 +127,30 @@ def _load_multinerf(run_dir: Path, marker: dict[str, Any], step: int | None) -> 
     finally:
         store.close()
     if int(meta["num_ids"]) != keys.num_ids or int(meta["bits"]) != keys.bits:
-        raise EmbedError(f"{run_dir}: keys.json ({keys.num_ids} IDs × {keys.bits} bits) does not match the "
-                         f"checkpoint ({meta['num_ids']} × {meta['bits']})")  # fmt: skip
+        raise EmbedError(
+            f"{run_dir}: keys.json ({keys.num_ids} IDs × {keys.bits} bits) does not match the "
+            f"checkpoint ({meta['num_ids']} × {meta['bits']})"
+        )
     params = jax.tree.map(jnp.asarray, tree["params"])
     loaded = runs.LoadedRun(
-        run_dir=run_dir, kind=WM_KIND, config=config, marker=marker, params=params,
+        run_dir=run_dir,
+        kind=WM_KIND,
+        config=config,
+        marker=marker,
+        params=params,
         geometry=raymarch.geometry_from_checkpoint(tree["geometry"], meta["geometry"]),
-        field_fns=watermark.field_fns(config.model, config.watermark), cond=None, step=int(meta["step"]),
+        field_fns=watermark.field_fns(config.model, config.watermark),
+        cond=None,
+        step=int(meta["step"]),
         meta=meta,
-        extras={"keys": keys, "decoder": dec, "num_ids": keys.num_ids, "id": None,
-                "source_run": marker.get("source_run")},
-    )  # fmt: skip
+        extras={
+            "keys": keys,
+            "decoder": dec,
+            "num_ids": keys.num_ids,
+            "id": None,
+            "source_run": marker.get("source_run"),
+        },
+    )
     return with_id(loaded, 0)
 
 
@@ -184,8 +202,9 @@ def render_with_ids(
     if len(ids) == 1:
         return {ids[0]: render_with_id(run, ids[0], cameras, indices, on_view=on_view, **kwargs)}
     cond = watermark.condition_many(run.params, np.asarray(ids, np.int32), run.config.watermark)
-    stacked = runs.render_views(dataclasses.replace(run, cond=cond), cameras, indices, on_view=on_view,
-                                **kwargs)  # fmt: skip
+    stacked = runs.render_views(
+        dataclasses.replace(run, cond=cond), cameras, indices, on_view=on_view, **kwargs
+    )
     return {n: [img[..., 3 * k : 3 * k + 3] for img in stacked] for k, n in enumerate(ids)}
 
 
@@ -219,8 +238,10 @@ def require_watermarked(run_dir: str | Path) -> dict[str, Any]:
     if marker is not None and marker.get("kind") == WM_KIND:
         return marker
     if marker is not None:
-        raise EmbedError(f"{run_dir} holds a {marker.get('kind')!r} run without watermarks "
-                         f"(make one with `mnerf embed --from {run_dir} --out WMRUN`)")  # fmt: skip
+        raise EmbedError(
+            f"{run_dir} holds a {marker.get('kind')!r} run without watermarks "
+            f"(make one with `mnerf embed --from {run_dir} --out WMRUN`)"
+        )
     if (run_dir / keys_lib.KEYS_FILE).is_file():
         raise EmbedError(f"{run_dir} has keys but no {rundir.RUN_MARKER}: not a complete watermarked run")
     raise EmbedError(f"{run_dir} is not a watermarked run (make one with `mnerf embed`)")
@@ -238,7 +259,8 @@ def load_keys_and_decoder(run_dir: str | Path) -> tuple[keys_lib.KeySet, decoder
     return _keys_and_decoder(Path(run_dir))
 
 
-def render_with_id(run: runs.LoadedRun, index: int, cameras: Any, indices: Sequence[int] | None = None,
-                   **kwargs: Any) -> list[np.ndarray]:  # fmt: skip
+def render_with_id(
+    run: runs.LoadedRun, index: int, cameras: Any, indices: Sequence[int] | None = None, **kwargs: Any
+) -> list[np.ndarray]:
     """Evaluation renders ``[H, W, 3]`` of ``cameras`` (``data.Cameras``) for ID ``index``."""
     return runs.render_views(with_id(run, index), cameras, indices, **kwargs)

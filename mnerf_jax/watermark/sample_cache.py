@@ -1,4 +1,5 @@
-"""The fitted field's colour samples of every training view, computed once (``watermark.schedule.cache_source``).
+"""The fitted field's colour samples of every training view, computed once
+(``watermark.schedule.cache_source``).
 
 With the fitted TensoRF frozen, a watermarked render differs from the clean one only in what the watermark
 adds to the colour MLP's last-layer logits (``watermark.film_logits``): the samples, their compositing
@@ -143,8 +144,10 @@ def build_cache(
     )
     if progress:
         most = int(counts.max(initial=0))
-        tqdm.write(f"sample cache: {len(views)} views, at most {most:,} coloured samples a view ({size:,} "
-                   f"slots), {cache.nbytes / 2**20:.0f} MB")  # fmt: skip
+        tqdm.write(
+            f"sample cache: {len(views)} views, at most {most:,} coloured samples a view ({size:,} "
+            f"slots), {cache.nbytes / 2**20:.0f} MB"
+        )
     return cache
 
 
@@ -204,8 +207,14 @@ def _id_renders(
     return cached_render(params, watermark.condition_many(params, ids, cfg), view, cfg, white_bg)
 
 
-def every_id_renders(cache: SampleCache, params: Any, cfg: WatermarkConfig, num_ids: int, white_bg: bool,
-                     ids_per_render: int = run.IDS_PER_RENDER) -> dict[int, np.ndarray]:  # fmt: skip
+def every_id_renders(
+    cache: SampleCache,
+    params: Any,
+    cfg: WatermarkConfig,
+    num_ids: int,
+    white_bg: bool,
+    ids_per_render: int = run.IDS_PER_RENDER,
+) -> dict[int, np.ndarray]:
     """Every ID's render of every cached view, ``{ID: [V, R, 3]}`` float32, as ``run.render_every_id``
     renders them (evaluation mode) for a field whose source is the cached one, without a ray march."""
     out: dict[int, list[np.ndarray]] = {n: [] for n in range(num_ids)}

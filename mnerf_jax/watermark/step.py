@@ -1,7 +1,7 @@
 """The compiled watermark-embedding step: its static spec, optimiser groups, losses and one jitted step.
 
-One step renders one training view with the FiLM conditioning of K IDs (``watermark.schedule.ids_per_step``; one
-geometry pass for all of them) and back-propagates the mean of their two-phase objectives by deferred
+One step renders one training view with the FiLM conditioning of K IDs (``watermark.schedule.ids_per_step``;
+one geometry pass for all of them) and back-propagates the mean of their two-phase objectives by deferred
 back-propagation (:mod:`mnerf_jax.watermark.deferred`); :mod:`mnerf_jax.watermark.embed` drives it (the
 objective and the phases are described there).
 """
@@ -152,8 +152,8 @@ def render_patch_fn(
 ) -> RenderFn:
     """Patch renders with the IDs ``ids [K]``: ``rgb [R, 3K]`` (ID ``ids[k]`` in columns ``3k:3k+3``).
 
-    With ``cache`` (``watermark.schedule.cache_source``: the view's ``cache_*`` buffers) the render is the whole
-    view from its cached samples (one patch covers it; the rays are not read)."""
+    With ``cache`` (``watermark.schedule.cache_source``: the view's ``cache_*`` buffers) the render is the
+    whole view from its cached samples (one patch covers it; the rays are not read)."""
     if cache is not None:
         return sample_cache.view_render_fn(spec.wm, geometry.white_bg, ids, cache)
     fns = watermark.field_fns(spec.model, spec.wm)
@@ -166,9 +166,17 @@ def render_patch_fn(
         else:
             cond = watermark.condition_many(params, ids, spec.wm)
         out = render.render_rays(
-            fns, params, cond, rays[0], rays[1], geometry, key,
-            train=spec.wm.schedule.jitter, density_budget=spec.density_budget, colour_budget=spec.colour_budget,
-        )  # fmt: skip
+            fns,
+            params,
+            cond,
+            rays[0],
+            rays[1],
+            geometry,
+            key,
+            train=spec.wm.schedule.jitter,
+            density_budget=spec.density_budget,
+            colour_budget=spec.colour_budget,
+        )
         return out["rgb"], {"density_count": out["density_count"], "colour_count": out["colour_count"]}
 
     return render_fn
@@ -265,7 +273,9 @@ def message_loss(
     """
     use_key = cfg.losses.lambda_key > 0
     if use_key and (keys is None or ids is None):
-        raise ValueError("watermark.losses.lambda_key > 0 needs every ID's message (keys) and the renders' ids")
+        raise ValueError(
+            "watermark.losses.lambda_key > 0 needs every ID's message (keys) and the renders' ids"
+        )
 
     def key_term(z: jax.Array) -> jax.Array:
         if not use_key:
@@ -338,8 +348,14 @@ def make_image_loss(
         same key, so the same augmentations for every call; their random parameters per image)."""
         seen = images
         if spec.phase == 2 and cfg.augment.per_step > 0:
-            seen = augment.random_policy(key, seen, cfg.augment.strength, k=cfg.augment.per_step,
-                                         p=cfg.augment.prob, names=cfg.augment.names or None)  # fmt: skip
+            seen = augment.random_policy(
+                key,
+                seen,
+                cfg.augment.strength,
+                k=cfg.augment.per_step,
+                p=cfg.augment.prob,
+                names=cfg.augment.names or None,
+            )
         variables = {**decoder_state, "params": dec_params}
         return decoder_lib.apply_ll2(variables, dwt.ll2(windowed(cfg, seen), cfg.reading.wavelet))
 
@@ -349,7 +365,9 @@ def make_image_loss(
         loss = cfg.losses.lambda_message * term + cfg.losses.lambda_key * key
         if spec.phase == 2 and cfg.losses.lambda_clean:
             clean_logits = decode(negative[None], dec_params)
-            loss = loss + cfg.losses.lambda_clean * losses.bce_with_logits(clean_logits, 0.5, cfg.losses.bce_temperature)
+            loss = loss + cfg.losses.lambda_clean * losses.bce_with_logits(
+                clean_logits, 0.5, cfg.losses.bce_temperature
+            )
         perc = jnp.zeros((), jnp.float32)
         if spec.phase == 1 and cfg.losses.lambda_perceptual:
             targets = jnp.broadcast_to(target_image, renders.shape)
@@ -397,15 +415,35 @@ def embed_step(
     target_image = batch["target"].reshape(h, w, 3)
     rays = (batch["rays_o"], batch["rays_d"])
     reference = batch["reference"].reshape(h, w, 3) if "reference" in batch else None
-    image_loss = make_image_loss(spec, k_aug, message, target_image, state.decoder, vgg_params, reference,
-                                 batch.get("keys"), batch["id"], batch.get("fidelity_mse"))  # fmt: skip
+    image_loss = make_image_loss(
+        spec,
+        k_aug,
+        message,
+        target_image,
+        state.decoder,
+        vgg_params,
+        reference,
+        batch.get("keys"),
+        batch["id"],
+        batch.get("fidelity_mse"),
+    )
     ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
     cache = {k: v for k, v in batch.items() if k.startswith("cache_")} or None
     render_fn = render_patch_fn(spec, geometry, batch["id"], cache)
     loss, aux, image, g_field, g_dec = deferred_grad(
-        render_fn, image_loss, ploss, state.params, state.decoder["params"],
-        rays, batch["target"], layout_index, layout_owner, k_render, h, w,
-    )  # fmt: skip
+        render_fn,
+        image_loss,
+        ploss,
+        state.params,
+        state.decoder["params"],
+        rays,
+        batch["target"],
+        layout_index,
+        layout_owner,
+        k_render,
+        h,
+        w,
+    )
     if spec.phase == 1:
         g_dec = jax.tree.map(jnp.zeros_like, g_dec)  # the decoder is frozen in phase 1
     grads = {"field": g_field, "decoder": g_dec}

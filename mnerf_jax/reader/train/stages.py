@@ -195,8 +195,10 @@ def train_decoder(
     if cfg.size % 4 or cfg.size < 16:
         raise MnerfError(f"--size must be a multiple of 4 and at least 16, got {cfg.size}")
     if cfg.encoder_channels < 1 or cfg.encoder_depth < 0:
-        raise MnerfError(f"--encoder-channels must be ≥ 1 and --encoder-depth ≥ 0, got {cfg.encoder_channels}"
-                         f" and {cfg.encoder_depth}")  # fmt: skip
+        raise MnerfError(
+            f"--encoder-channels must be ≥ 1 and --encoder-depth ≥ 0, got {cfg.encoder_channels}"
+            f" and {cfg.encoder_depth}"
+        )
     if cfg.decoder_from and (cfg.informed_steps or cfg.steps):
         raise MnerfError(
             "--decoder-from trains an encoder for a finished decoder: pass --informed-steps 0 --steps 0"

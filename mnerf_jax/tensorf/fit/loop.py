@@ -72,10 +72,16 @@ def geometry_for(
 ) -> raymarch.Geometry:
     """A fresh geometry (no alpha mask) for ``resolution`` nodes over ``scene_aabb``."""
     return raymarch.make_geometry(
-        scene_aabb, resolution, step_ratio=config.render.step_ratio, near=near, far=far,
-        distance_scale=config.model.distance_scale, ndc=ndc, white_bg=white_bg,
+        scene_aabb,
+        resolution,
+        step_ratio=config.render.step_ratio,
+        near=near,
+        far=far,
+        distance_scale=config.model.distance_scale,
+        ndc=ndc,
+        white_bg=white_bg,
         max_samples=config.render.max_samples,
-    )  # fmt: skip
+    )
 
 
 def init_state(config: Config, scene: Scene) -> TrainState:
@@ -84,8 +90,9 @@ def init_state(config: Config, scene: Scene) -> TrainState:
     resolution = grids.resolution_from_voxels(aabb, config.train.n_voxel_init)
     key = jax.random.key(config.train.seed)
     params = field.init_field(jax.random.fold_in(key, 0x1417), config.model, resolution)
-    geometry = geometry_for(config, aabb, resolution, near=scene.near, far=scene.far, ndc=scene.ndc,
-                            white_bg=scene.white_bg)  # fmt: skip
+    geometry = geometry_for(
+        config, aabb, resolution, near=scene.near, far=scene.far, ndc=scene.ndc, white_bg=scene.white_bg
+    )
     hyper = StepHyper.from_config(config)
     return TrainState(
         params=params,
@@ -115,8 +122,9 @@ def update_alpha_mask(
     shrinks where it also upsamples, which resets Adam anyway). An all-empty mask is not applied.
     """
     geometry = state.geometry
-    mask = alpha_mask.compute_alpha_mask(fns, state.params, geometry, mask_resolution,
-                                     threshold=config.render.alpha_mask_threshold)  # fmt: skip
+    mask = alpha_mask.compute_alpha_mask(
+        fns, state.params, geometry, mask_resolution, threshold=config.render.alpha_mask_threshold
+    )
     if not mask.any():
         # Nothing is dense enough yet: an empty mask would leave no sample to train on.
         return state
@@ -126,9 +134,15 @@ def update_alpha_mask(
         new_box = alpha_mask.shrink_box_from_mask(mask, old_aabb)
         params, aligned = alpha_mask.shrink_field(params, old_aabb, new_box)
         opt_state, _ = alpha_mask.shrink_field(opt_state, old_aabb, new_box)
-        geometry = geometry_for(config, aligned, grids.vm_resolution(params["density"]),
-                                near=float(geometry.near), far=float(geometry.far), ndc=geometry.ndc,
-                                white_bg=geometry.white_bg)  # fmt: skip
+        geometry = geometry_for(
+            config,
+            aligned,
+            grids.vm_resolution(params["density"]),
+            near=float(geometry.near),
+            far=float(geometry.far),
+            ndc=geometry.ndc,
+            white_bg=geometry.white_bg,
+        )
     geometry = raymarch.with_alpha_mask(geometry, mask, old_aabb)
     return state.replace(params=params, opt_state=opt_state, geometry=geometry)
 
@@ -140,10 +154,18 @@ def upsample(config: Config, state: TrainState, n_voxels: int) -> TrainState:
     params = dict(state.params)
     for name in GRID_GROUPS:
         params[name] = grids.upsample_vm(params[name], resolution)
-    fresh = geometry_for(config, np.asarray(geometry.aabb), resolution, near=float(geometry.near),
-                         far=float(geometry.far), ndc=geometry.ndc, white_bg=geometry.white_bg)  # fmt: skip
-    fresh = fresh.replace(alpha_mask=geometry.alpha_mask, alpha_cells=geometry.alpha_cells,
-                          mask_aabb=geometry.mask_aabb)  # fmt: skip
+    fresh = geometry_for(
+        config,
+        np.asarray(geometry.aabb),
+        resolution,
+        near=float(geometry.near),
+        far=float(geometry.far),
+        ndc=geometry.ndc,
+        white_bg=geometry.white_bg,
+    )
+    fresh = fresh.replace(
+        alpha_mask=geometry.alpha_mask, alpha_cells=geometry.alpha_cells, mask_aabb=geometry.mask_aabb
+    )
     hyper = StepHyper.from_config(config)
     return state.replace(
         params=params,
@@ -244,9 +266,15 @@ class _Trainer:
         shapes = (state.resolution, state.geometry.n_samples, *budgets)
         t0 = time.perf_counter()
         new_state, out = train_step(
-            state, self.rays.origins[idx], self.rays.directions[idx], self.rays.rgb[idx],
-            fns=self.fns, hyper=self.hyper, density_budget=budgets[0], colour_budget=budgets[1],
-        )  # fmt: skip
+            state,
+            self.rays.origins[idx],
+            self.rays.directions[idx],
+            self.rays.rgb[idx],
+            fns=self.fns,
+            hyper=self.hyper,
+            density_budget=budgets[0],
+            colour_budget=budgets[1],
+        )
         if shapes not in self.shapes_seen:
             # Tracing and compiling happen in this call; execution is asynchronous.
             self.shapes_seen.add(shapes)
@@ -269,8 +297,9 @@ class _Trainer:
                 pk, before, after, out = pending
                 host = jax.device_get(out)
                 n_samples = self.state.geometry.n_samples
-                if self.budgets.observe(pk, int(host["density_count"]), int(host["colour_count"]), n_samples,
-                                        self.cap):  # fmt: skip
+                if self.budgets.observe(
+                    pk, int(host["density_count"]), int(host["colour_count"]), n_samples, self.cap
+                ):
                     self.redone += 1
                     state, k, pending = before, pk, None
                     continue
@@ -320,8 +349,13 @@ class _Trainer:
     def filter_rays(self, start: int) -> None:
         """Keep the training rays that cross an occupied alpha-mask cell (TensoRF's filtering_rays)."""
         g = self.state.geometry
-        keep = alpha_mask.filter_rays(g, self.base_rays.origins, self.base_rays.directions, chunk=1 << 16,
-                                  n_samples=min(256, g.n_samples))  # fmt: skip
+        keep = alpha_mask.filter_rays(
+            g,
+            self.base_rays.origins,
+            self.base_rays.directions,
+            chunk=1 << 16,
+            n_samples=min(256, g.n_samples),
+        )
         if not keep.any():
             keep[:] = True  # nothing occupied: keep training on every ray
         self.ray_keep = keep
@@ -416,11 +450,18 @@ def fit(
         if store is not None:
             store.wait()
         return FitResult(
-            state=trainer.state, fns=fns, steps=int(trainer.state.step), train_seconds=seconds,
-            rays=trainer.rays_done, compiles=len(trainer.shapes_seen), redone_steps=trainer.redone,
-            last_metrics=last, total_train_seconds=prior + seconds, compile_seconds=trainer.compile_seconds,
+            state=trainer.state,
+            fns=fns,
+            steps=int(trainer.state.step),
+            train_seconds=seconds,
+            rays=trainer.rays_done,
+            compiles=len(trainer.shapes_seen),
+            redone_steps=trainer.redone,
+            last_metrics=last,
+            total_train_seconds=prior + seconds,
+            compile_seconds=trainer.compile_seconds,
             step_shapes=tuple(sorted(trainer.shapes_seen)),
-        )  # fmt: skip
+        )
     finally:
         if store is not None:
             store.close()

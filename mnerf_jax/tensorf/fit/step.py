@@ -150,9 +150,19 @@ def _loss_fn(
         # TensoRF composites a black-background scene on white in half of the training steps.
         bg = jnp.where(jax.random.uniform(k_bg) < 0.5, 1.0, 0.0) * jnp.ones((3,), jnp.float32)
     out = render.render_rays(
-        fns, params, None, rays_o, rays_d, state.geometry, k_jitter, train=True, bg=bg,
-        density_budget=density_budget, colour_budget=colour_budget, weight_threshold=hyper.weight_threshold,
-    )  # fmt: skip
+        fns,
+        params,
+        None,
+        rays_o,
+        rays_d,
+        state.geometry,
+        k_jitter,
+        train=True,
+        bg=bg,
+        density_budget=density_budget,
+        colour_budget=colour_budget,
+        weight_threshold=hyper.weight_threshold,
+    )
     mse = jnp.mean(jnp.square(out["rgb"] - rgb))
     loss = mse
     l1_weight = jnp.where(state.step >= hyper.l1_switch, hyper.l1_rest, hyper.l1_initial)
