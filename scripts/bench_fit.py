@@ -25,7 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mnerf_jax.cli.fit import reexec_with_huge_pages  # noqa: E402
+from mnerf_jax.cli.process import reexec_with_huge_pages  # noqa: E402
 
 # glibc huge pages for XLA's buffers, as the mnerf command uses (see mnerf_jax.cli.fit).
 reexec_with_huge_pages([sys.executable, str(Path(__file__).resolve()), *sys.argv[1:]])

@@ -29,7 +29,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from mnerf_jax.cli.fit import reexec_with_huge_pages
+from mnerf_jax.cli.process import reexec_with_huge_pages
 
 # glibc huge pages for XLA's buffers, as the mnerf command uses (see mnerf_jax.cli.fit).
 reexec_with_huge_pages([sys.executable, str(Path(__file__).resolve()), *sys.argv[1:]])

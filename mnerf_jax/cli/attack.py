@@ -45,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mnerf_jax.cli.fit import prepare_process
+    from mnerf_jax.cli.process import prepare_process
 
     prepare_process()
     from mnerf_jax.evaluation import attacks as wm_attacks

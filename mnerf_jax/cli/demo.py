@@ -231,7 +231,7 @@ def print_table(rows: list[tuple[str, str]], file: Any = sys.stdout) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mnerf_jax.cli.fit import prepare_process
+    from mnerf_jax.cli.process import prepare_process
 
     prepare_process()
     from mnerf_jax.core.config import load_config

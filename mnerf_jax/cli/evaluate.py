@@ -48,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mnerf_jax.cli.fit import prepare_process
+    from mnerf_jax.cli.process import prepare_process
 
     prepare_process()
     from mnerf_jax.tensorf import run as runs

@@ -160,7 +160,7 @@ def load_for_render(run_dir: Path, wm_id: int | None = None) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mnerf_jax.cli.fit import prepare_process
+    from mnerf_jax.cli.process import prepare_process
 
     prepare_process()
     loaded = load_for_render(args.run, args.id)

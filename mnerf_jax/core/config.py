@@ -60,7 +60,9 @@ class RenderConfig:
     aabb: tuple[float, float, float, float, float, float] = (-1.5, -1.5, -1.5, 1.5, 1.5, 1.5)
     weight_threshold: float = 1e-4  # colour is evaluated only where weight > this
     alpha_mask_threshold: float = 1e-4
-    chunk: int = 4096  # rays per chunk when rendering whole images (small enough for the buffers to stay in cache)
+    chunk: int = (
+        4096  # rays per chunk when rendering whole images (small enough for the buffers to stay in cache)
+    )
     max_samples: int = 0  # 0: derived from the grid (TensoRF's rule); >0 caps it
 
 
