@@ -69,7 +69,7 @@ def four_runs(tmp_path: Path) -> list[Path]:
 
 def test_runs_group_by_the_setting_they_differ_in_and_seeds_fold_together(four_runs: list[Path]) -> None:
     groups = compare.compare_runs(four_runs)
-    assert [g.label for g in groups] == ["lambda_key=0.1", "lambda_key=0.2"]
+    assert [g.label for g in groups] == ["losses.lambda_key=0.1", "losses.lambda_key=0.2"]
     assert [[r.path.name for r in g.runs] for g in groups] == [["a0", "a1"], ["b0", "b1"]]
     mean, low, high = groups[0].stats("bits")
     assert (mean, low, high) == pytest.approx((0.85, 0.80, 0.90))
@@ -121,8 +121,8 @@ def test_cli_prints_both_tables_json_and_a_plot(four_runs: list[Path], tmp_path:
     plot = tmp_path / "out" / "tradeoff.png"
     assert cli.main(["compare", *map(str, four_runs), "--plot", str(plot)]) == 0
     out = capsys.readouterr().out
-    assert "| lambda_key=0.1 | a0 | 0/0 | 90.0 % |" in out
-    assert "| lambda_key=0.2 | 2 | 87.0 % (80.0 % – 94.0 %) |" in out
+    assert "| losses.lambda_key=0.1 | a0 | 0/0 | 90.0 % |" in out
+    assert "| losses.lambda_key=0.2 | 2 | 87.0 % (80.0 % – 94.0 %) |" in out
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert cli.main(["compare", *map(str, four_runs), "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
@@ -145,3 +145,16 @@ def test_worst_id_named_is_the_lowest_diagonal_share_of_the_decision_confusion()
     result = {"identification": {"confusion_decision": [[4, 0, 0], [1, 2, 1]]}}
     assert compare.figures_of(result)["named_worst_id"] == pytest.approx(0.5)
     assert compare.figures_of({"identification": {}})["named_worst_id"] is None
+
+
+def test_a_run_with_the_sections_folds_with_one_written_before_them(tmp_path: Path) -> None:
+    # config.json's [watermark] in today's sections and in the flat layout of older runs compare by the same
+    # dotted names: the two runs below are seeds of one setting.
+    old = write_run(tmp_path, "old", bits=0.9, psnr=24.0, settings={"seed": 0})
+    new = write_run(tmp_path, "new", bits=0.8, psnr=23.0, settings={"seed": 1})
+    nested = {"seed": 1, "key_seed": 0, "module": {"wm_ranks": [8, 8, 8]}, "losses": {"lambda_key": 0.2},
+              "fidelity": {"psnr": 0.0}, "time_budget": {"minutes": 60.0}}  # fmt: skip
+    (new / "config.json").write_text(json.dumps({"watermark": nested}))
+    runs = [compare.load_run_figures(p) for p in (old, new)]
+    assert compare.varying_settings(runs) == []
+    assert runs[1].settings["losses.lambda_key"] == 0.2

@@ -29,15 +29,17 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.core.config import flat_items
+from mnerf_jax.core.errors import ConfigError, MnerfError
+from mnerf_jax.core.watermark_config import translate_flat
 
 # Watermark fields that say which seed ran or how the run was kept, not what was trained: runs that differ
 # only in them are seeds of one setting.
 IGNORED_BY_DEFAULT: tuple[str, ...] = (
     "seed",
     "key_seed",
-    "time_budget_min",
-    "phase3_reserve_min",
+    "time_budget.minutes",
+    "phase3.reserve_min",
     "checkpoint_every",
     "keep_checkpoints",
 )
@@ -92,7 +94,7 @@ class Group:
 
 # Plain JSON reads, not rundir.read_marker / read_run_config: those import the checkpoint stack (JAX, Orbax),
 # and the config parser checks every field against today's Config, where a comparison needs only the
-# recorded [watermark] values.
+# recorded [watermark] values (by their dotted names; a run written before the sections is translated).
 WATERMARK_KIND = "multinerf"  # rundir.WATERMARK_KIND
 
 
@@ -171,7 +173,11 @@ def load_run_figures(run_dir: str | Path, split: str = "test") -> RunFigures:
     )
     if "bit_accuracy_mean" not in result:
         raise CompareError(f"{path}/eval-{split}.json: not a watermarked run's evaluation")
-    settings = dict(settings, source_run=marker.get("source_run"))
+    try:
+        settings = flat_items(translate_flat(settings))
+    except ConfigError as err:
+        raise CompareError(f"{path}/config.json: {err}") from None
+    settings["source_run"] = marker.get("source_run")
     return RunFigures(
         path=path,
         settings=settings,
