@@ -81,7 +81,7 @@ class RunFigures:
 class Group:
     """Runs sharing the values of every compared setting (seeds of one setting)."""
 
-    label: str  # "lambda_key=0.1, fidelity_psnr=27.0"; "all runs" when nothing differs
+    label: str  # "losses.lambda_key=0.1, fidelity.psnr=27.0"; "all runs" when nothing differs
     runs: tuple[RunFigures, ...]
 
     def stats(self, figure: str) -> tuple[float, float, float] | None:

@@ -33,7 +33,7 @@ colour layer but the last (``watermark.condition_many``), so each ID learns more
 K renders' cost.
 
 Phase 3 (not in the paper; ``watermark.phase3.steps`` > 0): once the field's schedule has ended, or the time
-budget has ended the field in time to keep ``phase3_reserve_min`` for it, the decoder alone learns on the
+budget has ended the field in time to keep ``phase3.reserve_min`` for it, the decoder alone learns on the
 field's renders of every training view (and of novel views) with every ID (``decoder_refit``); the field
 does not change. :func:`refit_phase` runs it and checkpoints at step ``phase-1 + phase-2 + phase-3 steps``.
 

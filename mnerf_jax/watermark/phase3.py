@@ -184,7 +184,7 @@ def refit_rate(cfg: WatermarkConfig, step: Any, total: Any) -> jax.Array:
 
 
 def refit_schedule(cfg: WatermarkConfig) -> optax.Schedule:
-    """:func:`refit_rate` over the configured ``phase3_steps``."""
+    """:func:`refit_rate` over the configured ``phase3.steps``."""
     return lambda count: refit_rate(cfg, count, max(int(cfg.phase3.steps), 1))
 
 
@@ -280,13 +280,13 @@ def refit_decoder(
     seconds_left: Callable[[], float] | None = None,
     progress: bool = False,
 ) -> tuple[PyTree, dict[str, float]]:
-    """Up to ``phase3_steps`` decoder steps on ``data`` from ``decoder_vars`` (``{"params", "batch_stats",
+    """Up to ``phase3.steps`` decoder steps on ``data`` from ``decoder_vars`` (``{"params", "batch_stats",
     ...}``; only ``params`` change). ``keep_going()`` is asked before each step (the time budget).
 
     ``seconds_left()`` (the time budget's, when it has one): after :data:`SIZING_STEPS` timed steps the
     schedule is shortened to the steps that fit in :data:`SIZING_MARGIN` of it, so that its warm-up and
     cosine decay end inside the budget, not cut off at a high rate where steps run slower. Without it, or when
-    all the steps fit, the schedule is ``phase3_steps`` long and the run deterministic in
+    all the steps fit, the schedule is ``phase3.steps`` long and the run deterministic in
     ``watermark.seed``. Returns the new variables and ``{"steps", "scheduled", "loss"}`` (steps taken, the
     schedule's length, the last step's loss).
     """

@@ -195,9 +195,9 @@ def uses_clean_renders(cfg: WatermarkConfig) -> bool:
 
 def fidelity_budget_db(cfg: WatermarkConfig, step: int, total: int) -> float:
     """The quality budget (dB of PSNR against the clean model's render) at step ``step`` of a ``total``-step
-    schedule: ``fidelity_psnr``, or with ``fidelity_psnr_start`` > 0 that until the fraction
-    ``fidelity_ramp[0]`` of the steps, then linear in dB up to ``fidelity_psnr`` at ``fidelity_ramp[1]``,
-    then ``fidelity_psnr``. Host side: the step receives the budget as data, so the ramp compiles once."""
+    schedule: ``fidelity.psnr``, or with ``fidelity.psnr_start`` > 0 that until the fraction
+    ``fidelity.ramp[0]`` of the steps, then linear in dB up to ``fidelity.psnr`` at ``fidelity.ramp[1]``,
+    then ``fidelity.psnr``. Host side: the step receives the budget as data, so the ramp compiles once."""
     if not cfg.fidelity.psnr_start:
         return float(cfg.fidelity.psnr)
     first, last = (float(f) * max(int(total), 1) for f in cfg.fidelity.ramp)
@@ -214,7 +214,7 @@ def fidelity_loss(
 ) -> tuple[jax.Array, jax.Array]:
     """``(mean over K of relu(MSE_k / MSE_budget − 1), mean MSE)`` of ``renders [K, H, W, 3]`` against the
     clean model's ``reference [H, W, 3]``; ``MSE_budget`` is ``budget`` (a scalar, traced: the ramp's value
-    at this step) or ``10^(−fidelity_psnr / 10)``: zero, with no gradient, for renders inside it."""
+    at this step) or ``10^(−fidelity.psnr / 10)``: zero, with no gradient, for renders inside it."""
     mse = jnp.mean(jnp.square(renders - reference[None]), axis=(1, 2, 3))
     if budget is None:
         budget = metrics_lib.psnr_to_mse(cfg.fidelity.psnr)
