@@ -129,12 +129,11 @@ def load_for_render(run_dir: Path, wm_id: int | None = None) -> Any:
 
     MnerfError (nothing written) for an ID on a run without watermarks or outside ``[0, N)``.
     """
+    from mnerf_jax.watermark import run as wm_run
 
     loaded = wm_run.load_run(run_dir)
     if wm_id is None:
         return loaded
-    from mnerf_jax.watermark import run as wm_run
-
     return wm_run.with_id(loaded, wm_id)
 
 
