@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from mnerf_jax.evaluation import report
+from mnerf_jax.evaluation import plots, report
 from mnerf_jax.evaluation import watermarked as V
 
 # ---------------------------------------------------------------------------------------------- report
@@ -75,8 +75,8 @@ def test_per_id_table_names_the_weakest_bit() -> None:
 def test_residual_is_amplified_and_clipped() -> None:
     a = np.zeros((2, 2, 3), np.float32)
     b = np.full((2, 2, 3), 0.03, np.float32)
-    np.testing.assert_allclose(report.residual(b, a), 0.3, atol=1e-6)
-    np.testing.assert_allclose(report.residual(b + 0.5, a), 1.0)
+    np.testing.assert_allclose(plots.residual(b, a), 0.3, atol=1e-6)
+    np.testing.assert_allclose(plots.residual(b + 0.5, a), 1.0)
 
 
 def test_format_table_lists_every_id() -> None:
