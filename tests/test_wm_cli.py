@@ -153,8 +153,12 @@ def test_extract_identifies_the_id_of_rendered_images(tiny: TinyRuns, id_renders
         bits = (row > 0).astype(np.uint8)
         assert r["bits"] == "".join(map(str, bits))
         scores = signs @ row  # soft correlation with each key
-        best = int(np.argmax(scores))
-        assert r["best_id"] == (best if (scores == scores[best]).sum() == 1 else -1)
+        near_top = np.flatnonzero(scores >= scores.max() - 1e-9 * max(1.0, np.abs(scores).max()))
+        if len(near_top) == 1:
+            assert r["best_id"] == near_top[0]
+        else:  # a tie, up to rounding (which the summation order decides): undecided, or one of the tied keys
+            assert r["best_id"] in (-1, *near_top.tolist())
+        best = r["best_id"] if r["best_id"] >= 0 else int(np.argmax(scores))
         agree = int((bits == keys.messages[best]).sum())
         assert r["bit_accuracy"] == agree / 8
         assert r["p_value"] == pytest.approx(_binomial_tail(agree, 8), rel=1e-12)
