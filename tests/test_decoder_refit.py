@@ -126,7 +126,10 @@ def _bit_accuracy(variables: dict, data: decoder_refit.RefitSet) -> float:
 
 def test_the_refit_decoder_learns_the_ids_keys_and_is_deterministic() -> None:
     data, variables = _two_class_set()
-    cfg = wm_config(phase3_steps=100, phase3_batch=8, phase3_lr=1e-3, seed=3)
+    # Two of the 14 augmentations: the random policy stays in the step (and in the determinism below), and
+    # the step compiles much faster than with the whole registry; the refit reads these as well as all 14.
+    cfg = wm_config(phase3_steps=100, phase3_batch=8, phase3_lr=1e-3, seed=3,
+                    augment_names=("gaussian_noise", "box_blur"))  # fmt: skip
     before = _bit_accuracy(variables, data)
     refit, metrics = decoder_refit.refit_decoder(cfg, variables, data)
     assert metrics["steps"] == 100 and np.isfinite(metrics["loss"])

@@ -916,9 +916,10 @@ def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> Non
 def test_embedding_steps_receive_the_ramps_budget(tiny: TinyRuns) -> None:
     # The host loop hands step s the ramp's budget at s (the step reports it back as psnr_budget).
     root = tiny.root
+    # No augmentations: a faster compile (the ramp does not depend on them).
     overrides = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=1", "watermark.schedule.phase2_steps=3",
                  "watermark.fidelity.psnr=30", "watermark.fidelity.psnr_start=10",
-                 "watermark.fidelity.ramp=0.25,0.75"]  # fmt: skip
+                 "watermark.fidelity.ramp=0.25,0.75", "watermark.augment.per_step=0"]  # fmt: skip
     seen: dict[int, float] = {}
     E.embed(tiny.fit, root / "ramp", 2, 8, overrides=overrides, decoder_path=tiny.decoder, progress=False,
             on_step=lambda step, metrics: seen.__setitem__(step, metrics["psnr_budget"]))  # fmt: skip

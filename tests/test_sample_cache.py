@@ -104,8 +104,10 @@ def test_cache_source_needs_a_last_layer_film_variant_and_no_jitter() -> None:
 
 
 def test_a_tiny_embed_with_a_cached_source_trains_only_the_watermark(tiny: TinyRuns) -> None:
+    # No augmentations: a faster compile (the cache does not depend on them).
     overrides = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=2", "watermark.schedule.phase2_steps=3",
-                 "watermark.schedule.cache_source=true", "watermark.schedule.jitter=false"]  # fmt: skip
+                 "watermark.schedule.cache_source=true", "watermark.schedule.jitter=false",
+                 "watermark.augment.per_step=0"]  # fmt: skip
     out = tiny.root / "cached"
     result = E.embed(tiny.fit, out, 2, 8, overrides=overrides, decoder_path=tiny.decoder, progress=False)
     assert result.steps == 5
