@@ -133,24 +133,43 @@ def fern_dir() -> Path:
 # alpha mask + shrink after step 30, upsampling after 38, a second alpha mask + ray filtering after 45.
 # The mask threshold is raised so that a field this young already shrinks the box.
 TINY_SCHEDULE = [
-    "data.procedural_size=32", "data.procedural_views=8", "train.batch_size=512", "train.n_iters=60",
-    "train.n_voxel_init=4096", "train.n_voxel_final=13824", "train.upsample_steps=38",
-    "train.alpha_mask_steps=30,45", "render.alpha_mask_threshold=1e-3", "train.checkpoint_every=12",
+    "data.procedural_size=32",
+    "data.procedural_views=8",
+    "train.batch_size=512",
+    "train.n_iters=60",
+    "train.n_voxel_init=4096",
+    "train.n_voxel_final=13824",
+    "train.upsample_steps=38",
+    "train.alpha_mask_steps=30,45",
+    "render.alpha_mask_threshold=1e-3",
+    "train.checkpoint_every=12",
     "train.log_every=12",
-]  # fmt: skip
+]
 
 
 # ------------------------------------------------------------------ a tiny fitted and watermarked run
 
 TINY_FIT = [
-    "data.procedural_size=32", "data.procedural_views=12", "train.n_iters=150", "train.batch_size=1024",
-    "train.n_voxel_init=27000", "train.n_voxel_final=27000", "train.upsample_steps=",
-    "train.alpha_mask_steps=", "train.checkpoint_every=150", "model.density_ranks=4,4,4",
-    "model.appearance_ranks=8,8,8", "model.app_features=12", "model.mlp_width=32",
-]  # fmt: skip
+    "data.procedural_size=32",
+    "data.procedural_views=12",
+    "train.n_iters=150",
+    "train.batch_size=1024",
+    "train.n_voxel_init=27000",
+    "train.n_voxel_final=27000",
+    "train.upsample_steps=",
+    "train.alpha_mask_steps=",
+    "train.checkpoint_every=150",
+    "model.density_ranks=4,4,4",
+    "model.appearance_ranks=8,8,8",
+    "model.app_features=12",
+    "model.mlp_width=32",
+]
 TINY_EMBED = [
-    "watermark.schedule.patch_size=16", "watermark.schedule.phase1_steps=40", "watermark.schedule.phase2_steps=40",
-    "watermark.checkpoint_every=40", "watermark.module.wm_ranks=4,4,4",
+    "watermark.schedule.patch_size=16",
+    "watermark.schedule.phase1_steps=40",
+    "watermark.schedule.phase2_steps=40",
+    "watermark.checkpoint_every=40",
+    "watermark.module.wm_ranks=4,4,4",
     # 80 steps are enough with the fitted field at 0.3x the paper's rates and the uncalibrated random
     # decoder of random_decoder (its large whitening gain: tiny changes flip its bits); the CLI tests need a
     # strong watermark, not a realistic one, and 0.3x reads it while costing less PSNR than 1.0x.
@@ -158,7 +177,8 @@ TINY_EMBED = [
     # The paper's losses, without the procedural preset's quality budget (the rate above was chosen so).
     "watermark.fidelity.psnr=0",
     # ... and the decoder rate and clean term that rate was chosen with (the defaults are 1e-3, 0.3).
-    "watermark.optim.lr_decoder=1e-4", "watermark.losses.lambda_clean=0",
+    "watermark.optim.lr_decoder=1e-4",
+    "watermark.losses.lambda_clean=0",
     # Three of the 14 augmentations, filters that barely move a 32-px view's LL2: phase 2's step compiles
     # faster and the watermark still reads (photometric subsets such as brightness, contrast, saturation
     # leave it at chance: this decoder's whitening gain makes any colour change a large one). test_augment
@@ -167,8 +187,9 @@ TINY_EMBED = [
     "watermark.augment.names=gaussian_blur,box_blur,sharpness",
     # The paper's path, ray-marched with deferred patches and an adapting source (the procedural preset caches
     # its frozen source; tests/test_sample_cache.py embeds that way).
-    "watermark.schedule.cache_source=false", "watermark.schedule.jitter=true",
-]  # fmt: skip
+    "watermark.schedule.cache_source=false",
+    "watermark.schedule.jitter=true",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -195,8 +216,14 @@ def random_decoder(path: Path, bits: int, images: np.ndarray | None = None) -> P
     variables = decoder.init_decoder(jax.random.PRNGKey(0), bits)
     if images is not None:
         rng = np.random.default_rng(0)
-        batch = np.concatenate([images, images[:, ::-1], images[:, :, ::-1],
-                                np.clip(images + rng.normal(0, 0.05, images.shape), 0, 1)]).astype(np.float32)
+        batch = np.concatenate(
+            [
+                images,
+                images[:, ::-1],
+                images[:, :, ::-1],
+                np.clip(images + rng.normal(0, 0.05, images.shape), 0, 1),
+            ]
+        ).astype(np.float32)
         variables = decoder.fit_whitening(variables, [dwt.ll2(jnp.asarray(batch))])
     decoder_io.save_decoder(
         path, variables, {"note": "random init, whitened on the procedural scene (tests)"}

@@ -14,8 +14,12 @@ from mnerf_jax.core.config import load_config
 
 def _tree(scale: float, size: int = 4):
     params = {"w": jnp.full((size, 3), scale, jnp.float32), "b": jnp.arange(3, dtype=jnp.float32)}
-    return {"params": params, "opt": optax.adam(1e-3).init(params), "step": jnp.int32(7),
-            "mask": np.ones((2, 2, 2), bool)}  # fmt: skip
+    return {
+        "params": params,
+        "opt": optax.adam(1e-3).init(params),
+        "step": jnp.int32(7),
+        "mask": np.ones((2, 2, 2), bool),
+    }
 
 
 def test_fingerprint_ignores_bookkeeping_but_not_the_schedule():
@@ -25,8 +29,12 @@ def test_fingerprint_ignores_bookkeeping_but_not_the_schedule():
         ["train.checkpoint_every=7", "train.log_every=3", "train.keep_checkpoints=5", "render.chunk=1024"],
     )
     assert config_fingerprint(base) == config_fingerprint(same)
-    for override in ("train.n_iters=999", "model.density_ranks=8,8,8", "render.step_ratio=0.25",
-                     "data.procedural_size=32"):  # fmt: skip
+    for override in (
+        "train.n_iters=999",
+        "model.density_ranks=8,8,8",
+        "render.step_ratio=0.25",
+        "data.procedural_size=32",
+    ):
         assert config_fingerprint(load_config("procedural", [override])) != config_fingerprint(base), override
 
 

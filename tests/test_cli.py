@@ -43,17 +43,20 @@ def test_fit_writes_the_documented_files(tiny_run):
 
 
 def test_render_test_split_and_path(tiny_run, tmp_path, mnerf):
-    code, out, _ = mnerf("render", "--run", tiny_run, "--split", "test", "--out", tmp_path / "t",
-                         "--views", "2", "--quiet")  # fmt: skip
+    code, out, _ = mnerf(
+        "render", "--run", tiny_run, "--split", "test", "--out", tmp_path / "t", "--views", "2", "--quiet"
+    )
     assert code == 0 and sorted(p.name for p in (tmp_path / "t").iterdir()) == ["r_0.png", "r_3.png"]
-    code, _, _ = mnerf("render", "--run", tiny_run, "--split", "path", "--out", tmp_path / "p",
-                       "--frames", "3", "--quiet")  # fmt: skip
+    code, _, _ = mnerf(
+        "render", "--run", tiny_run, "--split", "path", "--out", tmp_path / "p", "--frames", "3", "--quiet"
+    )
     assert code == 0 and (tmp_path / "p" / "path.gif").stat().st_size > 0
     assert len(list((tmp_path / "p").glob("frame_*.png"))) == 3
     # Rendering again over the same files is refused unless asked for.
     before = _snapshot(tmp_path / "t")
-    code, _, err = mnerf("render", "--run", tiny_run, "--split", "test", "--out", tmp_path / "t",
-                         "--views", "2", "--quiet")  # fmt: skip
+    code, _, err = mnerf(
+        "render", "--run", tiny_run, "--split", "test", "--out", tmp_path / "t", "--views", "2", "--quiet"
+    )
     assert code == 2 and "--overwrite" in err and _snapshot(tmp_path / "t") == before
 
 
@@ -90,9 +93,7 @@ def test_unknown_set_key_is_one_clear_line(tmp_path, mnerf):
 
 
 def test_missing_data_and_missing_checkpoint_are_clear_errors(tmp_path, mnerf):
-    code, _, err = mnerf(
-        "fit", "--config", "quick", "--data", tmp_path / "nope", "--out", tmp_path / "r"
-    )
+    code, _, err = mnerf("fit", "--config", "quick", "--data", tmp_path / "nope", "--out", tmp_path / "r")
     assert code == 2 and "no such scene directory" in err and not (tmp_path / "r").exists()
     # A run directory whose fit never reached a checkpoint.
     from mnerf_jax.core.config import load_config

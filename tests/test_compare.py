@@ -11,8 +11,14 @@ from mnerf_jax import cli
 from mnerf_jax.core import rundir
 from mnerf_jax.evaluation import compare
 
-BASE_SETTINGS = {"lambda_key": 0.2, "fidelity_psnr": 0.0, "seed": 0, "key_seed": 0, "time_budget_min": 60.0,
-                 "wm_ranks": [8, 8, 8]}  # fmt: skip
+BASE_SETTINGS = {
+    "lambda_key": 0.2,
+    "fidelity_psnr": 0.0,
+    "seed": 0,
+    "key_seed": 0,
+    "time_budget_min": 60.0,
+    "wm_ranks": [8, 8, 8],
+}
 
 
 def write_run(
@@ -32,12 +38,21 @@ def write_run(
     (run / "run.json").write_text(json.dumps({"kind": kind, "source_run": source}))
     (run / "config.json").write_text(json.dumps({"watermark": {**BASE_SETTINGS, **(settings or {})}}))
     result = {
-        "bit_accuracy_mean": bits, "bit_accuracy_png_mean": bits - 0.001, "bit_accuracy_min": bits - 0.1,
-        "identification_accuracy": 0.95, "verified_identification_accuracy": 0.3,
-        "misidentification_rate": 0.0, "clean_false_detection_rate": 0.01,
+        "bit_accuracy_mean": bits,
+        "bit_accuracy_png_mean": bits - 0.001,
+        "bit_accuracy_min": bits - 0.1,
+        "identification_accuracy": 0.95,
+        "verified_identification_accuracy": 0.3,
+        "misidentification_rate": 0.0,
+        "clean_false_detection_rate": 0.01,
         "identification": {"test": "binomial"},
-        "psnr": psnr, "clean_psnr": 32.0, "lpips": 0.1, "views": 200, "num_ids": 16, "bits": 16,
-    }  # fmt: skip
+        "psnr": psnr,
+        "clean_psnr": 32.0,
+        "lpips": 0.1,
+        "views": 200,
+        "num_ids": 16,
+        "bits": 16,
+    }
     if by_test:
         result |= {
             "verified_identification_accuracy_by_test": {"binomial": 0.3, "sign_flip": 0.5},
@@ -62,7 +77,7 @@ def four_runs(tmp_path: Path) -> list[Path]:
             bits=0.80,
             psnr=26.0,
             settings={"lambda_key": 0.1, "seed": 1, "key_seed": 1, "time_budget_min": 0.0},
-        ),  # fmt: skip
+        ),
         write_run(tmp_path, "b1", bits=0.94, psnr=23.0, settings={"seed": 1, "key_seed": 1}),
     ]
 
@@ -108,7 +123,7 @@ def test_an_evaluation_without_per_test_rates_keeps_its_own_tests_figure(tmp_pat
                 (write_run(root, "new", bits=0.9, psnr=24.0) / "eval-test.json").unlink() or root / "new"
             ),
             "mnerf evaluate --run",
-        ),  # fmt: skip
+        ),
     ],
 )
 def test_a_run_that_cannot_be_compared_is_refused_with_its_reason(tmp_path: Path, make, message: str) -> None:
@@ -152,8 +167,14 @@ def test_a_run_with_the_sections_folds_with_one_written_before_them(tmp_path: Pa
     # dotted names: the two runs below are seeds of one setting.
     old = write_run(tmp_path, "old", bits=0.9, psnr=24.0, settings={"seed": 0})
     new = write_run(tmp_path, "new", bits=0.8, psnr=23.0, settings={"seed": 1})
-    nested = {"seed": 1, "key_seed": 0, "module": {"wm_ranks": [8, 8, 8]}, "losses": {"lambda_key": 0.2},
-              "fidelity": {"psnr": 0.0}, "time_budget": {"minutes": 60.0}}  # fmt: skip
+    nested = {
+        "seed": 1,
+        "key_seed": 0,
+        "module": {"wm_ranks": [8, 8, 8]},
+        "losses": {"lambda_key": 0.2},
+        "fidelity": {"psnr": 0.0},
+        "time_budget": {"minutes": 60.0},
+    }
     (new / "config.json").write_text(json.dumps({"watermark": nested}))
     runs = [compare.load_run_figures(p) for p in (old, new)]
     assert compare.varying_settings(runs) == []

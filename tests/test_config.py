@@ -24,13 +24,23 @@ def test_a_flat_config_json_from_before_the_sections_loads_as_today(tmp_path: Pa
     nested = config.load_preset("embed_cpu_quality")
     flat = nested.to_dict()
     wm = flat.pop("watermark")
-    old_names = {"augment": "augment_{}", "reading": "read_{}", "fidelity": "fidelity_{}", "phase3": "phase3_{}"}
+    old_names = {
+        "augment": "augment_{}",
+        "reading": "read_{}",
+        "fidelity": "fidelity_{}",
+        "phase3": "phase3_{}",
+    }
     legacy: dict = {k: v for k, v in wm.items() if not isinstance(v, dict)}
     for section, values in ((k, v) for k, v in wm.items() if isinstance(v, dict)):
         for name, value in values.items():
             key = old_names.get(section, "{}").format(name)
-            key = {"read_wavelet": "wavelet", "read_id_threshold": "id_threshold", "read_id_test": "id_test",
-                   "fidelity_weight": "lambda_fidelity", "minutes": "time_budget_min"}.get(key, key)
+            key = {
+                "read_wavelet": "wavelet",
+                "read_id_threshold": "id_threshold",
+                "read_id_test": "id_test",
+                "fidelity_weight": "lambda_fidelity",
+                "minutes": "time_budget_min",
+            }.get(key, key)
             legacy[key] = value
     legacy.update(emb_activation="relu", budget_sizes_field=False)  # removed, at the values this version runs
     (tmp_path / "config.json").write_text(json.dumps({**flat, "watermark": legacy}))
@@ -46,10 +56,16 @@ def test_a_removed_switch_at_another_value_is_refused_with_one_line() -> None:
 
 def test_choices_and_ranges_are_checked_when_the_config_is_built() -> None:
     bad = [
-        "watermark.variant=bogus", "watermark.losses.perceptual=lpips", "watermark.augment.strength=extreme",
-        "watermark.reading.id_test=fisher", "watermark.phase3.view_density=cube", "watermark.losses.lambda_key=-1",
-        "watermark.schedule.phase1_steps=-2", "watermark.module.wm_ranks=0,0,0", "watermark.fidelity.psnr=-1",
-    ]  # fmt: skip
+        "watermark.variant=bogus",
+        "watermark.losses.perceptual=lpips",
+        "watermark.augment.strength=extreme",
+        "watermark.reading.id_test=fisher",
+        "watermark.phase3.view_density=cube",
+        "watermark.losses.lambda_key=-1",
+        "watermark.schedule.phase1_steps=-2",
+        "watermark.module.wm_ranks=0,0,0",
+        "watermark.fidelity.psnr=-1",
+    ]
     for item in bad:
         with pytest.raises(ConfigError, match=item.split("=")[0].split(".")[-1]):
             config.load_config("procedural", [item])
@@ -63,7 +79,12 @@ def test_field_metadata_decides_what_the_step_and_the_fingerprint_ignore() -> No
     )
     host = normalised(cfg, "host")
     assert (host.seed, host.schedule.phase1_steps, host.phase3, host.time_budget, host.reading.jitter) == (
-        0, -1, WatermarkConfig().phase3, WatermarkConfig().time_budget, 0)  # fmt: skip
+        0,
+        -1,
+        WatermarkConfig().phase3,
+        WatermarkConfig().time_budget,
+        0,
+    )
     assert host.losses.lambda_key == 0.5  # the step reads it
     trajectory = normalised(cfg, "trajectory")
     assert trajectory.seed == 5 and trajectory.schedule.phase1_steps == 3  # they change the trajectory

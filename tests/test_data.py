@@ -409,9 +409,11 @@ def test_nerfstudio_loader(tmp_path):
 
 def test_nerfstudio_split_lists_and_per_frame_split(tmp_path):
     frames = _nerfstudio_scene(
-        tmp_path, 5, train_filenames=["images/frame_001.png", "images/frame_004.png"],
+        tmp_path,
+        5,
+        train_filenames=["images/frame_001.png", "images/frame_004.png"],
         test_filenames=["./images/frame_002"],
-    )  # fmt: skip
+    )
     scene = load_scene(tmp_path, DataConfig(dataset="nerfstudio"))
     assert scene.split("train").names == ["frame_001", "frame_004"]
     assert scene.split("test").names == ["frame_002"]

@@ -26,8 +26,10 @@ def _blender(root: Path, n: int = 3, split: str = "train", **meta) -> dict:
     """A small valid Blender split: ``n`` 8x8 RGBA images and their transforms file."""
     for i in range(n):
         _png(root / split / f"r_{i}.png")
-    content = {"camera_angle_x": 0.7, "frames": [{"file_path": f"./{split}/r_{i}", "transform_matrix": EYE}
-                                                 for i in range(n)]}  # fmt: skip
+    content = {
+        "camera_angle_x": 0.7,
+        "frames": [{"file_path": f"./{split}/r_{i}", "transform_matrix": EYE} for i in range(n)],
+    }
     content.update(meta)
     (root / f"transforms_{split}.json").write_text(json.dumps(content, indent=2))
     return content

@@ -120,8 +120,9 @@ def test_batch_norm_calibration_makes_eval_mode_match_train_mode() -> None:
     calibrated = dec.calibrate_batch_norm(variables, ll2)
     np.testing.assert_allclose(dec.apply_ll2(calibrated, ll2), train_logits, rtol=1e-3, atol=1e-4)
     # The params are untouched; only the running statistics moved (away from the init's 0 / 1).
-    np.testing.assert_array_equal(calibrated["params"]["block_0"]["conv"]["kernel"],
-                                  variables["params"]["block_0"]["conv"]["kernel"])  # fmt: skip
+    np.testing.assert_array_equal(
+        calibrated["params"]["block_0"]["conv"]["kernel"], variables["params"]["block_0"]["conv"]["kernel"]
+    )
     assert float(jnp.abs(calibrated["batch_stats"]["block_3"]["bn"]["mean"]).max()) > 1e-3
 
 
@@ -371,9 +372,14 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
     # An encoder trained anew for the finished decoder, at two sides in turn: the decoder is copied as it is
     # (same fingerprint, its training record kept) and the figures are re-measured with the new encoder.
     refit = dataclasses.replace(
-        cfg, informed_steps=0, steps=0, finetune_steps=4, finetune_sizes=(32, 48), eval_sizes=(32,),
+        cfg,
+        informed_steps=0,
+        steps=0,
+        finetune_steps=4,
+        finetune_sizes=(32, 48),
+        eval_sizes=(32,),
         decoder_from=str(tmp_path / "decoder.npz"),
-    )  # fmt: skip
+    )
     with pytest.raises(MnerfError, match="--informed-steps 0 --steps 0"):
         stages.train_decoder(dataclasses.replace(refit, steps=2), tmp_path / "bad", progress=False)
     with pytest.raises(MnerfError, match="decodes 8-bit messages, but 16 bits"):
@@ -391,8 +397,9 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
 def test_informed_step_with_a_margin_reads_windows_and_updates_the_decoder() -> None:
     """With ``informed_margin`` the decoder reads a smaller random window of each encoded image; the step
     still updates the decoder, with finite metrics, and keeps its pooling margin (1: LL2 windows of 4²)."""
-    cfg = stages.DecoderTrainConfig(bits=8, size=16, informed_margin=4, batch=2, informed_steps=4,
-                                           informed_sizes=(16,), pool_margin=1)  # fmt: skip
+    cfg = stages.DecoderTrainConfig(
+        bits=8, size=16, informed_margin=4, batch=2, informed_steps=4, informed_sizes=(16,), pool_margin=1
+    )
     state, (_, _, tx_inf, _) = stages.init_state(cfg)
     step = decoder_steps.make_informed_step(cfg, tx_inf, augmented=False)
     arrays = {k: state[k] for k in decoder_checkpoint.ARRAY_KEYS}
@@ -411,8 +418,15 @@ def test_informed_step_with_a_margin_reads_windows_and_updates_the_decoder() -> 
 def test_finetune_step_with_a_learning_decoder_keeps_its_whitening_and_statistics() -> None:
     """Stage 4 with ``finetune_decoder_lr``: the encoder and the decoder's weights move; the whitening layer
     and BatchNorm running statistics (what the encoder writes for) stay as they were."""
-    cfg = stages.DecoderTrainConfig(bits=8, size=16, batch=2, finetune_steps=4, clean_fraction=1.0,
-                                           finetune_decoder_lr=1e-3, finetune_decoder_start=0.5)  # fmt: skip
+    cfg = stages.DecoderTrainConfig(
+        bits=8,
+        size=16,
+        batch=2,
+        finetune_steps=4,
+        clean_fraction=1.0,
+        finetune_decoder_lr=1e-3,
+        finetune_decoder_start=0.5,
+    )
     assert recipe.finetune_decoder_start_step(cfg) == 2 and stages.decoder_learned(cfg)
     frozen = dataclasses.replace(cfg, finetune_decoder_lr=0.0)
     assert recipe.finetune_decoder_start_step(frozen) == 4
@@ -426,8 +440,10 @@ def test_finetune_step_with_a_learning_decoder_keeps_its_whitening_and_statistic
     for i in range(2):  # the learning rates warm up from 0 at the first step
         arrays, metrics = step(arrays, images, bits, jax.random.PRNGKey(i), jnp.float32(35.5))
         assert float(metrics["skipped"]) == 0.0 and np.isfinite(float(metrics["loss"]))
-    moved = lambda a, b: max(float(np.abs(np.asarray(x) - y).max()) for x, y in
-                             zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))  # fmt: skip
+    moved = lambda a, b: max(
+        float(np.abs(np.asarray(x) - y).max())
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+    )
     assert moved(arrays["encoder"]["params"], before["encoder"]["params"]) > 0.0
     assert moved(arrays["decoder"]["params"]["block_3"], before["decoder"]["params"]["block_3"]) > 0.0
     assert moved(arrays["decoder"]["params"]["whiten"], before["decoder"]["params"]["whiten"]) == 0.0
@@ -523,8 +539,11 @@ def test_encoder_size_comes_from_the_command_line_and_is_checked(tmp_path: Path,
     assert code == 2 and "--encoder-channels must be ≥ 1" in err and not (tmp_path / "run").exists()
     cfg = stages.DecoderTrainConfig(bits=8, encoder_channels=8, encoder_depth=1)
     encoder = stages.init_state(cfg)[0]["encoder"]
-    kernels = [leaf.shape for path, leaf in jax.tree_util.tree_leaves_with_path(encoder["params"])
-               if "kernel" in jax.tree_util.keystr(path)]  # fmt: skip
+    kernels = [
+        leaf.shape
+        for path, leaf in jax.tree_util.tree_leaves_with_path(encoder["params"])
+        if "kernel" in jax.tree_util.keystr(path)
+    ]
     assert len(kernels) == 1 + 2 + 1 and kernels[0][-1] == 8  # depth 1, two blocks after the message, 1×1 out
 
 

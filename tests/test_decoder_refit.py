@@ -41,13 +41,25 @@ def _ring_cameras(n: int = 12) -> Cameras:
     pos = dist[:, None] * unit
     c2w = np.stack([trajectory.look_at(p, np.zeros(3), np.array([0.0, 0.0, 1.0])) for p in pos])
     ones = np.ones(n, np.float32)
-    return Cameras(c2w=c2w, fx=40 * ones, fy=40 * ones, cx=16 * ones, cy=16 * ones,
-                   distortion=np.zeros((n, 4), np.float32), width=32, height=32)  # fmt: skip
+    return Cameras(
+        c2w=c2w,
+        fx=40 * ones,
+        fy=40 * ones,
+        cx=16 * ones,
+        cy=16 * ones,
+        distortion=np.zeros((n, 4), np.float32),
+        width=32,
+        height=32,
+    )
 
 
 @settings(max_examples=20, deadline=None)
-@given(count=st.integers(0, 30), seed=st.integers(0, 2**31 - 1),
-       density=st.sampled_from(["angles", "sphere"]), margin=st.sampled_from([0.0, 5.0, 45.0]))  # fmt: skip
+@given(
+    count=st.integers(0, 30),
+    seed=st.integers(0, 2**31 - 1),
+    density=st.sampled_from(["angles", "sphere"]),
+    margin=st.sampled_from([0.0, 5.0, 45.0]),
+)
 def test_novel_views_stay_within_the_cameras_ranges_and_look_at_their_focus(
     count: int, seed: int, density: str, margin: float
 ) -> None:
@@ -128,8 +140,9 @@ def test_the_refit_decoder_learns_the_ids_keys_and_is_deterministic() -> None:
     data, variables = _two_class_set()
     # Two of the 14 augmentations: the random policy stays in the step (and in the determinism below), and
     # the step compiles much faster than with the whole registry; the refit reads these as well as all 14.
-    cfg = wm_config(phase3_steps=100, phase3_batch=8, phase3_lr=1e-3, seed=3,
-                    augment_names=("gaussian_noise", "box_blur"))  # fmt: skip
+    cfg = wm_config(
+        phase3_steps=100, phase3_batch=8, phase3_lr=1e-3, seed=3, augment_names=("gaussian_noise", "box_blur")
+    )
     before = _bit_accuracy(variables, data)
     refit, metrics = decoder_refit.refit_decoder(cfg, variables, data)
     assert metrics["steps"] == 100 and np.isfinite(metrics["loss"])
@@ -176,8 +189,13 @@ def test_a_run_from_before_a_phase_3_setting_existed_counts_it_at_its_default(tm
     meta = {"step": 9, "config": {"watermark": saved}}
     E.check_phase3_unchanged(meta, Config(watermark=wm), tmp_path)
     with pytest.raises(MnerfError, match="phase 3"):
-        E.check_phase3_unchanged(meta, Config(watermark=dataclasses.replace(wm, phase3=dataclasses.replace(wm.phase3, lambda_clean=3.0))),
-                                 tmp_path)  # fmt: skip
+        E.check_phase3_unchanged(
+            meta,
+            Config(
+                watermark=dataclasses.replace(wm, phase3=dataclasses.replace(wm.phase3, lambda_clean=3.0))
+            ),
+            tmp_path,
+        )
 
 
 def test_the_refit_schedule_warms_up_then_decays_to_zero() -> None:
@@ -227,9 +245,17 @@ def test_phase_three_follows_the_fields_schedule_and_the_budget_keeps_room_for_i
 
 
 def test_phase_three_settings_are_checked() -> None:
-    for bad in ({"phase3_steps": -1}, {"phase3_views": -2}, {"phase3_batch": 0}, {"phase3_lr": 0.0},
-                {"phase3_reserve_min": -1.0}, {"phase3_lambda_clean": -0.1}, {"phase3_view_density": "cube"},
-                {"phase3_elevation_margin": -1.0}, {"phase3_elevation_margin": 91.0}):  # fmt: skip
+    for bad in (
+        {"phase3_steps": -1},
+        {"phase3_views": -2},
+        {"phase3_batch": 0},
+        {"phase3_lr": 0.0},
+        {"phase3_reserve_min": -1.0},
+        {"phase3_lambda_clean": -0.1},
+        {"phase3_view_density": "cube"},
+        {"phase3_elevation_margin": -1.0},
+        {"phase3_elevation_margin": 91.0},
+    ):
         with pytest.raises(MnerfError, match="phase3"):
             wm_config(**bad)
 
@@ -242,8 +268,12 @@ def test_tiny_embed_with_phase_three_and_its_resume(tiny: TinyRuns) -> None:
     run = root / "p3"
     shutil.copytree(tiny.wm, run)
     before = wm_run.load_watermarked_run(run)
-    phase3 = [*tiny.embed_overrides, "watermark.phase3.steps=6", "watermark.phase3.views=2",
-              "watermark.phase3.batch=4"]  # fmt: skip
+    phase3 = [
+        *tiny.embed_overrides,
+        "watermark.phase3.steps=6",
+        "watermark.phase3.views=2",
+        "watermark.phase3.batch=4",
+    ]
     args = dict(decoder_path=tiny.decoder, progress=False, resume=True)
     result = E.embed(tiny.fit, run, 2, 8, overrides=phase3, **args)
     assert result.steps == before.step + 6
@@ -274,22 +304,38 @@ def test_a_field_the_time_budget_ends_still_gets_phase_three(
     two_steps = lambda self, now: len(self.step_seconds) < 2  # noqa: E731
     monkeypatch.setattr(time_budget.BudgetClock, "room_for_a_step", two_steps)
     run = tiny.root / "p3_cut"
-    overrides = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=2", "watermark.schedule.phase2_steps=3",
-                 "watermark.phase3.steps=4", "watermark.phase3.views=2", "watermark.phase3.batch=4",
-                 "watermark.time_budget.minutes=30", "watermark.phase3.reserve_min=1"]  # fmt: skip
+    overrides = [
+        *tiny.embed_overrides,
+        "watermark.schedule.phase1_steps=2",
+        "watermark.schedule.phase2_steps=3",
+        "watermark.phase3.steps=4",
+        "watermark.phase3.views=2",
+        "watermark.phase3.batch=4",
+        "watermark.time_budget.minutes=30",
+        "watermark.phase3.reserve_min=1",
+    ]
     args = dict(decoder_path=tiny.decoder, progress=False)
     result = E.embed(tiny.fit, run, 2, 8, overrides=overrides, **args)
     assert result.stopped_by_budget
     assert (result.last_metrics["field_steps"], result.last_metrics["phase3_steps"]) == (2, 4)
     assert result.steps == 5 + 4 and wm_run.load_watermarked_run(run).step == 9
     assert json.loads((run / "embed.json").read_text())["phase"] == 3
-    field = E.embed(tiny.fit, tiny.root / "p3_cut_field", 2, 8, stop_at=2,
-                    overrides=[*overrides, "watermark.phase3.steps=0"], **args)  # fmt: skip
+    field = E.embed(
+        tiny.fit,
+        tiny.root / "p3_cut_field",
+        2,
+        8,
+        stop_at=2,
+        overrides=[*overrides, "watermark.phase3.steps=0"],
+        **args,
+    )
     refit = wm_run.load_watermarked_run(run)
     for x, y in zip(jax.tree.leaves(field.state.params), jax.tree.leaves(refit.params), strict=True):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-6, atol=1e-7)
-    assert refit.extras["decoder"].fingerprint != wm_run.load_watermarked_run(
-        tiny.root / "p3_cut_field").extras["decoder"].fingerprint
+    assert (
+        refit.extras["decoder"].fingerprint
+        != wm_run.load_watermarked_run(tiny.root / "p3_cut_field").extras["decoder"].fingerprint
+    )
     monkeypatch.undo()
     again = E.embed(tiny.fit, run, 2, 8, overrides=overrides, resume=True, **args)
     assert again.steps == 9 and not again.stopped_by_budget
@@ -305,8 +351,9 @@ def test_novel_views_on_a_forward_facing_scene_are_refused_before_anything_is_wr
     def forward_facing(self, *a, **k):
         scene = real(self, *a, **k)
         split = scene.split("train")
-        ndc = NDCSpace(focal=float(split.cameras.fx[0]), width=split.cameras.width,
-                       height=split.cameras.height, near=1.0)  # fmt: skip
+        ndc = NDCSpace(
+            focal=float(split.cameras.fx[0]), width=split.cameras.width, height=split.cameras.height, near=1.0
+        )
         cams = dataclasses.replace(split.cameras, ndc=ndc)
         return dataclasses.replace(scene, splits={"train": dataclasses.replace(split, cameras=cams)})
 
@@ -329,12 +376,14 @@ def test_the_refit_set_reuses_clean_renders_of_the_training_views_it_is_given(ti
     cfg = dataclasses.replace(wm.config.watermark, phase3_views=2)
     rendered = decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images, clean)
     references = np.stack(runs.render_views(clean, split.cameras)).astype(np.float16)
-    reused = decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images, clean,
-                                            clean_renders=references)  # fmt: skip
+    reused = decoder_refit.render_refit_set(
+        wm, split.cameras, cfg, split.images, clean, clean_renders=references
+    )
     views = len(split.images)
     assert reused.negatives.shape == rendered.negatives.shape == (2 * views + 2, *split.images.shape[1:])
     np.testing.assert_allclose(reused.negatives, rendered.negatives, atol=5e-4)
     np.testing.assert_array_equal(reused.renders, rendered.renders)
     with pytest.raises(ValueError, match="clean renders"):
-        decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images, clean,
-                                       clean_renders=references[1:])  # fmt: skip
+        decoder_refit.render_refit_set(
+            wm, split.cameras, cfg, split.images, clean, clean_renders=references[1:]
+        )

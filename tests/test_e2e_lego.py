@@ -14,9 +14,14 @@ from mnerf_jax.tensorf.fit import loop as train
 # 32^3 -> 64^3 (over the original box) after step 80, an alpha mask and box shrink at step 60,
 # 160 steps of 256 rays keep the test short (about half of it is compilation).
 OVERRIDES = [
-    "data.downscale=16", "train.batch_size=256", "train.n_iters=160", "train.n_voxel_init=32768",
-    "train.n_voxel_final=262144", "train.upsample_steps=80", "train.alpha_mask_steps=60",
-]  # fmt: skip
+    "data.downscale=16",
+    "train.batch_size=256",
+    "train.n_iters=160",
+    "train.n_voxel_init=32768",
+    "train.n_voxel_final=262144",
+    "train.upsample_steps=80",
+    "train.alpha_mask_steps=60",
+]
 TEST_VIEWS = (0, 40, 80, 120, 160)
 
 
@@ -24,8 +29,17 @@ def _test_psnr(fns, state, split) -> float:
     preds = []
     for i in TEST_VIEWS:
         o, d = camera_rays(split.cameras, i)
-        out = chunked.render_image(fns, state.params, None, o, d, state.geometry, split.cameras.height,
-                                  split.cameras.width, chunk=2500)  # fmt: skip
+        out = chunked.render_image(
+            fns,
+            state.params,
+            None,
+            o,
+            d,
+            state.geometry,
+            split.cameras.height,
+            split.cameras.width,
+            chunk=2500,
+        )
         preds.append(out["rgb"])
     return float(np.mean(np.asarray(metrics.psnr(np.stack(preds), split.images[list(TEST_VIEWS)]))))
 

@@ -143,12 +143,14 @@ def _gradients(height: int, width: int, patch: int, use_patch_loss: bool = True)
     args = (jnp.asarray(layout.index), jnp.asarray(layout.owner), jax.random.PRNGKey(4), height, width)
     ploss = _patch_loss if use_patch_loss else None
     loss_d, _, image, g_params_d, g_extra_d = jax.jit(
-        lambda p, e: D.deferred_grad(_toy_render, _image_loss, ploss, p, e, rays, targets, *args[:3],
-                                     height, width)
+        lambda p, e: D.deferred_grad(
+            _toy_render, _image_loss, ploss, p, e, rays, targets, *args[:3], height, width
+        )
     )(params, extra)
     (loss_r, _), (g_params_r, g_extra_r) = jax.value_and_grad(
-        lambda p, e: D.direct_objective(_toy_render, _image_loss, ploss, p, e, rays, targets, *args[:3],
-                                        height, width),
+        lambda p, e: D.direct_objective(
+            _toy_render, _image_loss, ploss, p, e, rays, targets, *args[:3], height, width
+        ),
         argnums=(0, 1),
         has_aux=True,
     )(params, extra)
@@ -216,13 +218,15 @@ def _small_watermarked_scene(cfg, num_ids: int, h: int, w: int) -> tuple:
     from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.tensorf import field
 
-    model = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(3, 3, 3), app_features=6, mlp_width=16,
-                        density_shift=0.0)  # fmt: skip
+    model = ModelConfig(
+        density_ranks=(2, 2, 2), appearance_ranks=(3, 3, 3), app_features=6, mlp_width=16, density_shift=0.0
+    )
     base = field.init_field(jax.random.PRNGKey(0), model, (6, 6, 6))
     base["density"] = jax.tree.map(lambda a: a + 0.6, base["density"])  # visible matter
     params = watermark.add_watermark(jax.random.PRNGKey(1), base, cfg, num_ids, extra_scale=0.3)
-    geometry = raymarch.make_geometry(np.array([[-1.5] * 3, [1.5] * 3]), (6, 6, 6), n_samples=24,
-                                      distance_scale=1.0)  # fmt: skip
+    geometry = raymarch.make_geometry(
+        np.array([[-1.5] * 3, [1.5] * 3]), (6, 6, 6), n_samples=24, distance_scale=1.0
+    )
     ys, xs = jnp.meshgrid(jnp.linspace(-0.35, 0.35, h), jnp.linspace(-0.35, 0.35, w), indexing="ij")
     dirs = jnp.stack([xs, ys, -jnp.ones_like(xs)], -1).reshape(-1, 3)
     dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
@@ -250,24 +254,37 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
     message = jnp.array([1, 0, 1, 1, 0, 0, 1, 0], jnp.float32)
 
     def render_fn(p, r, k):
-        out = render.render_rays(fns, p, watermark.condition(p, 1, cfg), r[0], r[1], geometry, k, train=False,
-                                 density_budget=None, colour_budget=None)  # fmt: skip
+        out = render.render_rays(
+            fns,
+            p,
+            watermark.condition(p, 1, cfg),
+            r[0],
+            r[1],
+            geometry,
+            k,
+            train=False,
+            density_budget=None,
+            colour_budget=None,
+        )
         return out["rgb"], {}
 
     def image_loss(image, dec_params):
-        logits = decoder.apply_ll2({"params": dec_params, "batch_stats": dec["batch_stats"]},
-                                   dwt.ll2(image[None]))[0]  # fmt: skip
+        logits = decoder.apply_ll2(
+            {"params": dec_params, "batch_stats": dec["batch_stats"]}, dwt.ll2(image[None])
+        )[0]
         loss = 0.95 * losses.bce_with_logits(logits, message) + 0.05 * losses.watson_dct_loss(
-            image, targets.reshape(h, w, 3))
+            image, targets.reshape(h, w, 3)
+        )
         return loss, {}
 
     ploss = functools.partial(S.patch_loss, cfg)
     layout = D.patch_layout(h, w, size)
     index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
     _, _, image, g_params, g_dec = jax.jit(
-        lambda p, d: D.deferred_grad(render_fn, image_loss, ploss, p, d, rays, targets, index, owner,
-                                     jax.random.PRNGKey(4), h, w)
-    )(params, dec["params"])  # fmt: skip
+        lambda p, d: D.deferred_grad(
+            render_fn, image_loss, ploss, p, d, rays, targets, index, owner, jax.random.PRNGKey(4), h, w
+        )
+    )(params, dec["params"])
 
     def full(p, d):
         rgb, _ = render_fn(p, rays, None)
@@ -284,7 +301,7 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
 
 
 def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_message() -> None:
-    # watermark.losses.lambda_clean adds λ·BCE(decoder(ground truth), ½) in phase 2: a constant in the image (the
+    # losses.lambda_clean adds λ·BCE(decoder(ground truth), ½) in phase 2: a constant in the image (the
     # field's gradient is unchanged) that trains the decoder to read nothing from unwatermarked images.
     from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.imaging import losses
@@ -297,8 +314,17 @@ def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_messag
 
     def loss_fn(lambda_clean: float, phase: int = 2):
         cfg = wm_config(augment_per_step=0, lambda_clean=lambda_clean, lambda_key=0.0)
-        spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
-                          width=24, density_budget=1, colour_budget=1)  # fmt: skip
+        spec = S.StepSpec(
+            model=ModelConfig(),
+            wm=cfg,
+            adam_b1=0.9,
+            adam_b2=0.99,
+            phase=phase,
+            height=24,
+            width=24,
+            density_budget=1,
+            colour_budget=1,
+        )
         return S.make_image_loss(spec, jax.random.PRNGKey(3), message, target, dec)
 
     with_clean, without = loss_fn(0.5), loss_fn(0.0)
@@ -409,10 +435,15 @@ def test_embedding_config_records_the_schedule_it_runs(tiny: TinyRuns) -> None:
     wm = E.resolve_config(source, None, sets, 2, 8).watermark
     assert (wm.schedule.phase1_steps, wm.schedule.phase2_steps) == (200, 7)
     with pytest.raises(MnerfError, match="must be ≥ 1"):
-        E.resolve_config(source, None, ["watermark.schedule.phase1_steps=0", "watermark.schedule.phase2_steps=0"], 2, 8)
+        E.resolve_config(
+            source, None, ["watermark.schedule.phase1_steps=0", "watermark.schedule.phase2_steps=0"], 2, 8
+        )
     with pytest.raises(MnerfError, match="read_window"):
         E.resolve_config(source, None, ["watermark.reading.window=1.5"], 2, 8)
-    for bad in (["watermark.reading.jitter=-1", "watermark.reading.window=0.7"], ["watermark.reading.jitter=1"]):
+    for bad in (
+        ["watermark.reading.jitter=-1", "watermark.reading.window=0.7"],
+        ["watermark.reading.jitter=1"],
+    ):
         with pytest.raises(MnerfError, match="read_jitter"):
             E.resolve_config(source, None, bad, 2, 8)
 
@@ -422,9 +453,14 @@ def test_resume_continues_exactly(tiny: TinyRuns) -> None:
     # augmentations). The decoder reads a read window (watermark.reading.window), which the run's decoder file
     # records; this costs the steps' compilation (the tiny run reads whole images).
     root = tiny.root
-    overrides = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=2", "watermark.schedule.phase2_steps=78",
-                 "watermark.reading.window=0.75", "watermark.reading.background=-1",
-                 "watermark.reading.jitter=1"]  # fmt: skip
+    overrides = [
+        *tiny.embed_overrides,
+        "watermark.schedule.phase1_steps=2",
+        "watermark.schedule.phase2_steps=78",
+        "watermark.reading.window=0.75",
+        "watermark.reading.background=-1",
+        "watermark.reading.jitter=1",
+    ]
     args = dict(overrides=overrides, decoder_path=tiny.decoder, progress=False)
     E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=3, **args)
     with pytest.raises(MnerfError, match="--resume"):
@@ -438,8 +474,10 @@ def test_resume_continues_exactly(tiny: TinyRuns) -> None:
     assert a.step == b.step == 5
     for x, y in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params), strict=True):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
-    assert json.loads((root / "r_split" / "keys.json").read_text())["messages"] == json.loads(
-        (root / "r_once" / "keys.json").read_text())["messages"]
+    assert (
+        json.loads((root / "r_split" / "keys.json").read_text())["messages"]
+        == json.loads((root / "r_once" / "keys.json").read_text())["messages"]
+    )
     meta = decoder_io.load_decoder(root / "r_split" / "decoder.npz").metadata
     assert (meta["read_window"], meta["read_background"], meta["read_jitter"]) == (0.75, -1.0, 1)
     assert a.config.watermark.reading.window == 0.75
@@ -449,7 +487,11 @@ def test_a_time_budget_ends_the_run_early_as_a_prefix_of_the_full_one(tiny: Tiny
     # A budget far below one step's cost lets the first step run and stops before the second (saved there);
     # the schedule is not resized, so resuming without a budget gives exactly the unbudgeted run.
     root = tiny.root
-    schedule = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=2", "watermark.schedule.phase2_steps=3"]
+    schedule = [
+        *tiny.embed_overrides,
+        "watermark.schedule.phase1_steps=2",
+        "watermark.schedule.phase2_steps=3",
+    ]
     args = dict(decoder_path=tiny.decoder, progress=False)
     tiny_budget = [*schedule, "watermark.time_budget.minutes=0.001"]
     stopped = E.embed(tiny.fit, root / "b_split", 2, 8, overrides=tiny_budget, **args)
@@ -457,18 +499,22 @@ def test_a_time_budget_ends_the_run_early_as_a_prefix_of_the_full_one(tiny: Tiny
     assert json.loads((root / "b_split" / "embed.json").read_text())["steps_done"] == 1
     resumed = E.embed(tiny.fit, root / "b_split", 2, 8, resume=True, overrides=schedule, **args)
     assert resumed.steps == 5 and not resumed.stopped_by_budget
-    roomy = E.embed(tiny.fit, root / "b_roomy", 2, 8, overrides=[*schedule, "watermark.time_budget.minutes=30"],
-                    **args)  # fmt: skip
+    roomy = E.embed(
+        tiny.fit, root / "b_roomy", 2, 8, overrides=[*schedule, "watermark.time_budget.minutes=30"], **args
+    )
     assert roomy.steps == 5 and not roomy.stopped_by_budget
     E.embed(tiny.fit, root / "b_plain", 2, 8, overrides=schedule, **args)
     a, b, c = (wm_run.load_watermarked_run(root / name) for name in ("b_split", "b_roomy", "b_plain"))
     assert a.step == b.step == c.step == 5
-    for x, y, z in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params), jax.tree.leaves(c.params),
-                       strict=True):  # fmt: skip
+    for x, y, z in zip(
+        jax.tree.leaves(a.params), jax.tree.leaves(b.params), jax.tree.leaves(c.params), strict=True
+    ):
         np.testing.assert_allclose(np.asarray(x), np.asarray(z), rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(np.asarray(y), np.asarray(z), rtol=1e-5, atol=1e-6)
     with pytest.raises(MnerfError, match="time_budget.minutes must be ≥ 0"):
-        E.embed(tiny.fit, root / "b_bad", 2, 8, overrides=[*schedule, "watermark.time_budget.minutes=-1"], **args)
+        E.embed(
+            tiny.fit, root / "b_bad", 2, 8, overrides=[*schedule, "watermark.time_budget.minutes=-1"], **args
+        )
 
 
 def test_recorded_watermark_settings_older_than_todays_are_named(
@@ -483,13 +529,17 @@ def test_recorded_watermark_settings_older_than_todays_are_named(
     recorded["watermark"]["optim"]["lr_decoder"] = 1e-4
     (old / "config.json").write_text(json.dumps(recorded))
     assert E.watermark_defaults_drift(old) == ["optim.lr_decoder 0.0001 (today 0.001)"]
-    assert E.watermark_defaults_drift(old, ["watermark.optim.lr_decoder=0.002"]) == []  # --set: neither value used
+    assert (
+        E.watermark_defaults_drift(old, ["watermark.optim.lr_decoder=0.002"]) == []
+    )  # --set: neither value used
     assert E.watermark_defaults_drift(tmp_path / "missing") == []  # embed itself says what is wrong
     base = ["embed", "--num-ids", "2", "--bits", "8", "--decoder", tiny.decoder, "--steps", "0", "--quiet"]
     code, _, err = mnerf(*base, "--from", old, "--out", tmp_path / "wm")
     assert code == 0 and "lr_decoder 0.0001 (today 0.001)" in err and "--config PRESET" in err
     assert json.loads((tmp_path / "wm" / "config.json").read_text())["watermark"]["lr_decoder"] == 1e-4
-    code, _, err = mnerf(*base, "--from", old, "--out", tmp_path / "w2", "--set", "watermark.optim.lr_decoder=2e-3")
+    code, _, err = mnerf(
+        *base, "--from", old, "--out", tmp_path / "w2", "--set", "watermark.optim.lr_decoder=2e-3"
+    )
     assert code == 0 and "note:" not in err, err
     # --config takes today's section (resolve_config is what the command calls with it).
     assert E.resolve_config(E.load_source(old), "procedural", [], 2, 8).watermark.optim.lr_decoder == 1e-3
@@ -501,28 +551,126 @@ def test_recorded_watermark_settings_older_than_todays_are_named(
 def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, mnerf) -> None:
     base = ["embed", "--from", str(tiny.fit), "--decoder", str(tiny.decoder), "--quiet"]
     cases = [
-        (["embed", "--from", str(tmp_path), "--out", str(tmp_path / "o1"), "--num-ids", "2", "--bits", "8"],
-         "not a fitted TensoRF"),
-        (["embed", "--from", str(tiny.wm), "--out", str(tmp_path / "o2"), "--num-ids", "2", "--bits", "8"],
-         "'multinerf' run, not a fitted TensoRF"),
+        (
+            [
+                "embed",
+                "--from",
+                str(tmp_path),
+                "--out",
+                str(tmp_path / "o1"),
+                "--num-ids",
+                "2",
+                "--bits",
+                "8",
+            ],
+            "not a fitted TensoRF",
+        ),
+        (
+            ["embed", "--from", str(tiny.wm), "--out", str(tmp_path / "o2"), "--num-ids", "2", "--bits", "8"],
+            "'multinerf' run, not a fitted TensoRF",
+        ),
         ([*base, "--out", str(tmp_path / "o3"), "--num-ids", "2", "--bits", "16"], "reads 8-bit messages"),
         ([*base, "--out", str(tmp_path / "o4"), "--num-ids", "300", "--bits", "8"], "more than 8 bits"),
-        ([*base, "--out", str(tmp_path / "o5"), "--num-ids", "2", "--bits", "8", "--set",
-          "watermark.variant=waterf"], "--num-ids 1"),
-        ([*base, "--out", str(tmp_path / "o6"), "--num-ids", "2", "--bits", "8", "--set",
-          "model.mlp_width=64"], "may not change model"),
-        ([*base, "--out", str(tmp_path / "o7"), "--num-ids", "2", "--bits", "8", "--set",
-          "watermark.augment.strength=extreme"], "augment_strength"),
-        ([*base, "--out", str(tmp_path / "o8"), "--num-ids", "2", "--bits", "8", "--set",
-          "watermark.augment.names=jpeg,crop"], "unknown augmentation 'crop'"),
-        ([*base, "--out", str(tmp_path / "o9"), "--num-ids", "2", "--bits", "8", "--set",
-          "watermark.augment.names=jpeg"], "cannot draw 2 distinct augmentations from 1"),
-        ([*base, "--out", str(tmp_path / "o10"), "--num-ids", "2", "--bits", "8", "--set",
-          "watermark.schedule.ids_per_step=3"], "ids_per_step must be in [0, 2]"),
-        ([*base, "--out", str(tmp_path / "o11"), "--num-ids", "2", "--bits", "8", "--set",
-          "watermark.fidelity.psnr=-3"], "fidelity_psnr"),
+        (
+            [
+                *base,
+                "--out",
+                str(tmp_path / "o5"),
+                "--num-ids",
+                "2",
+                "--bits",
+                "8",
+                "--set",
+                "watermark.variant=waterf",
+            ],
+            "--num-ids 1",
+        ),
+        (
+            [
+                *base,
+                "--out",
+                str(tmp_path / "o6"),
+                "--num-ids",
+                "2",
+                "--bits",
+                "8",
+                "--set",
+                "model.mlp_width=64",
+            ],
+            "may not change model",
+        ),
+        (
+            [
+                *base,
+                "--out",
+                str(tmp_path / "o7"),
+                "--num-ids",
+                "2",
+                "--bits",
+                "8",
+                "--set",
+                "watermark.augment.strength=extreme",
+            ],
+            "augment_strength",
+        ),
+        (
+            [
+                *base,
+                "--out",
+                str(tmp_path / "o8"),
+                "--num-ids",
+                "2",
+                "--bits",
+                "8",
+                "--set",
+                "watermark.augment.names=jpeg,crop",
+            ],
+            "unknown augmentation 'crop'",
+        ),
+        (
+            [
+                *base,
+                "--out",
+                str(tmp_path / "o9"),
+                "--num-ids",
+                "2",
+                "--bits",
+                "8",
+                "--set",
+                "watermark.augment.names=jpeg",
+            ],
+            "cannot draw 2 distinct augmentations from 1",
+        ),
+        (
+            [
+                *base,
+                "--out",
+                str(tmp_path / "o10"),
+                "--num-ids",
+                "2",
+                "--bits",
+                "8",
+                "--set",
+                "watermark.schedule.ids_per_step=3",
+            ],
+            "ids_per_step must be in [0, 2]",
+        ),
+        (
+            [
+                *base,
+                "--out",
+                str(tmp_path / "o11"),
+                "--num-ids",
+                "2",
+                "--bits",
+                "8",
+                "--set",
+                "watermark.fidelity.psnr=-3",
+            ],
+            "fidelity_psnr",
+        ),
         ([*base, "--out", str(tiny.wm), "--num-ids", "2", "--bits", "8"], "--resume"),
-    ]  # fmt: skip
+    ]
     for argv, message in cases:
         code, _, err = mnerf(*argv)
         assert code == 2, (argv, err)
@@ -532,8 +680,9 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, m
         assert not (tmp_path / name).exists(), name
 
 
-def test_watermarked_run_without_keys_or_with_foreign_keys_is_refused(tiny: TinyRuns, tmp_path: Path,
-                                                                      mnerf) -> None:  # fmt: skip
+def test_watermarked_run_without_keys_or_with_foreign_keys_is_refused(
+    tiny: TinyRuns, tmp_path: Path, mnerf
+) -> None:
     from mnerf_jax.reader import keys as K
 
     copy = tmp_path / "wm"
@@ -541,8 +690,21 @@ def test_watermarked_run_without_keys_or_with_foreign_keys_is_refused(tiny: Tiny
     (copy / "keys.json").unlink()
     with pytest.raises(MnerfError, match="no keys.json"):
         wm_run.load_run(copy)
-    code, _, err = mnerf("embed", "--from", tiny.fit, "--out", copy, "--num-ids", "2", "--bits", "8",
-                         "--decoder", tiny.decoder, "--resume", "--quiet")  # fmt: skip
+    code, _, err = mnerf(
+        "embed",
+        "--from",
+        tiny.fit,
+        "--out",
+        copy,
+        "--num-ids",
+        "2",
+        "--bits",
+        "8",
+        "--decoder",
+        tiny.decoder,
+        "--resume",
+        "--quiet",
+    )
     assert code == 2 and "no keys.json" in err
     # Keys of another bit length than the run's decoder.
     K.save_keys(copy, K.generate_keys(2, 16, 0, 0))
@@ -597,9 +759,15 @@ def test_optimizer_groups_and_learning_rates(variant: str) -> None:
     tx = S.make_optimizer(cfg)
     grads = jax.tree.map(jnp.ones_like, tree)
     updates, _ = tx.update(grads, tx.init(tree), tree)
-    lr = {"grid": cfg.optim.lr_grid, "network": cfg.optim.lr_network, "embedding": cfg.optim.lr_embedding,
-          "decoder": cfg.optim.lr_decoder, "frozen": 0.0, "source_grid": cfg.optim.lr_grid * cfg.optim.lr_source_scale,
-          "source_network": cfg.optim.lr_network * cfg.optim.lr_source_scale}  # fmt: skip
+    lr = {
+        "grid": cfg.optim.lr_grid,
+        "network": cfg.optim.lr_network,
+        "embedding": cfg.optim.lr_embedding,
+        "decoder": cfg.optim.lr_decoder,
+        "frozen": 0.0,
+        "source_grid": cfg.optim.lr_grid * cfg.optim.lr_source_scale,
+        "source_network": cfg.optim.lr_network * cfg.optim.lr_source_scale,
+    }
     pairs = zip(jax.tree_util.tree_leaves_with_path(updates), jax.tree.leaves(labels), strict=True)
     for (path, update), label in pairs:
         where = jax.tree_util.keystr(path)
@@ -650,8 +818,9 @@ def test_step_config_keeps_what_the_compiled_step_reads() -> None:
     # compiled step (the decay's length is its argument); every loss weight still tells steps apart.
 
     base = wm_config(phase1_steps=40, phase2_steps=40)
-    same = wm_config(phase1_steps=2, phase2_steps=78, seed=5, key_seed=3, checkpoint_every=7,
-                           time_budget_min=60.0)  # fmt: skip
+    same = wm_config(
+        phase1_steps=2, phase2_steps=78, seed=5, key_seed=3, checkpoint_every=7, time_budget_min=60.0
+    )
     assert S.step_config(base) == S.step_config(same)
     assert S.step_config(base) == S.step_config(wm_config(phase1_steps=40, phase2_steps=41))
     heavier_rgb = wm_config(phase1_steps=40, phase2_steps=40, lambda_rgb=1.0)
@@ -678,8 +847,17 @@ def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.M
     image = jnp.full((16, 16, 3), 0.5)
     for names, expect in (((), None), (("jpeg", "hue"), ("jpeg", "hue"))):
         wm = wm_config(augment_names=names, lambda_key=0.0)
-        spec = S.StepSpec(model=ModelConfig(), wm=wm, adam_b1=0.9, adam_b2=0.99, phase=2, height=16,
-                          width=16, density_budget=1, colour_budget=1)  # fmt: skip
+        spec = S.StepSpec(
+            model=ModelConfig(),
+            wm=wm,
+            adam_b1=0.9,
+            adam_b2=0.99,
+            phase=2,
+            height=16,
+            width=16,
+            density_budget=1,
+            colour_budget=1,
+        )
         loss = S.make_image_loss(spec, jax.random.PRNGKey(1), jnp.zeros(8), image, dec)
         seen.clear()
         jax.eval_shape(loss, image, dec["params"])
@@ -687,20 +865,28 @@ def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.M
 
 
 def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
-    # watermark.schedule.ids_per_step: one deferred step on K IDs' renders of a view equals the mean over the K IDs of
+    # schedule.ids_per_step: one deferred step on K IDs' renders of a view equals the mean over the K IDs of
     # the direct (full-graph) gradient of that ID's objective alone: the IDs share the render, not the loss.
     from mnerf_jax.reader import decoder
 
     # lambda_key = 0: the key cross-entropy depends on the set of IDs, so it is not a mean over them.
-    cfg = wm_config(wm_ranks=(2, 2, 2), augment_per_step=0, jitter=False, lambda_ssim=0.0,
-                          lambda_key=0.0)  # fmt: skip
+    cfg = wm_config(wm_ranks=(2, 2, 2), augment_per_step=0, jitter=False, lambda_ssim=0.0, lambda_key=0.0)
     h, w = 10, 9
     model, params, geometry, rays, targets = _small_watermarked_scene(cfg, 4, h, w)
     dec = decoder.init_decoder(jax.random.PRNGKey(3), 8)
     messages = jnp.array([[1, 0, 1, 1, 0, 0, 1, 0], [0, 0, 1, 0, 1, 1, 1, 0]], jnp.float32)
     ids = jnp.array([2, 0])
-    spec = S.StepSpec(model=model, wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=2, height=h, width=w,
-                      density_budget=None, colour_budget=None)  # fmt: skip
+    spec = S.StepSpec(
+        model=model,
+        wm=cfg,
+        adam_b1=0.9,
+        adam_b2=0.99,
+        phase=2,
+        height=h,
+        width=w,
+        density_budget=None,
+        colour_budget=None,
+    )
     layout = D.patch_layout(h, w, 6)
     index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
     target_image = targets.reshape(h, w, 3)
@@ -713,15 +899,17 @@ def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
 
     fn, loss_fn = objective(ids, messages)
     _, aux, image, g_params, g_dec = jax.jit(
-        lambda p, d: D.deferred_grad(fn, loss_fn, ploss, p, d, rays, targets, index, owner,
-                                     jax.random.PRNGKey(4), h, w)
-    )(params, dec["params"])  # fmt: skip
+        lambda p, d: D.deferred_grad(
+            fn, loss_fn, ploss, p, d, rays, targets, index, owner, jax.random.PRNGKey(4), h, w
+        )
+    )(params, dec["params"])
     assert image.shape == (h, w, 6)
 
     def direct_one(p, d, id_k, message_k):
         fn_k, loss_k = objective(id_k, message_k)
-        return D.direct_objective(fn_k, loss_k, ploss, p, d, rays, targets, index, owner,
-                                  jax.random.PRNGKey(4), h, w)[0]  # fmt: skip
+        return D.direct_objective(
+            fn_k, loss_k, ploss, p, d, rays, targets, index, owner, jax.random.PRNGKey(4), h, w
+        )[0]
 
     direct_grad = jax.jit(jax.grad(direct_one, argnums=(0, 1)))  # one compilation for both IDs
     grads = [direct_grad(params, dec["params"], ids[k : k + 1], messages[k : k + 1]) for k in range(2)]
@@ -735,7 +923,7 @@ def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
 
 
 def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
-    # watermark.losses.id_loss_power p: the renders' gradient is that of Σ_k w_k·BCE_k with w ∝ BCE^p held constant;
+    # losses.id_loss_power p: the renders' gradient is that of Σ_k w_k·BCE_k with w ∝ BCE^p held constant;
     # the decoder's gradient and the value stay the plain mean's. p = 0 is the plain mean throughout, and one
     # ID is its own BCE whatever p.
     from mnerf_jax.imaging import losses
@@ -761,8 +949,9 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
         term, bce, key = S.message_loss(cfg, decode, renders, dec, message)
         np.testing.assert_allclose([term, bce], [per_id.mean()] * 2, rtol=1e-5)
         assert float(key) == 0.0  # lambda_key = 0: no key term
-        g_r, g_p = jax.grad(lambda r, p, c=cfg: S.message_loss(c, decode, r, p, message)[0],
-                            argnums=(0, 1))(renders, dec)  # fmt: skip
+        g_r, g_p = jax.grad(lambda r, p, c=cfg: S.message_loss(c, decode, r, p, message)[0], argnums=(0, 1))(
+            renders, dec
+        )
         w = per_id**power / np.sum(per_id**power)
         np.testing.assert_allclose(g_r, jax.grad(weighted)(renders, dec, w), rtol=1e-4, atol=1e-8)
         np.testing.assert_allclose(g_p, g_plain[1], rtol=1e-4, atol=1e-8)
@@ -778,7 +967,7 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
 
 
 def test_key_term_is_the_key_cross_entropy_with_its_gradient_to_renders_and_decoder() -> None:
-    # watermark.losses.lambda_key: the same logits as the BCE, the gradient of key_cross_entropy(decode(r, p)) to
+    # losses.lambda_key: the same logits as the BCE, the gradient of key_cross_entropy(decode(r, p)) to
     # both sides, with the plain mean and with id_loss_power's two decoder passes alike.
     from mnerf_jax.imaging import losses
 
@@ -798,8 +987,9 @@ def test_key_term_is_the_key_cross_entropy_with_its_gradient_to_renders_and_deco
         cfg = wm_config(id_loss_power=power, lambda_key=0.5)
         key = S.message_loss(cfg, decode, renders, dec, keys[ids], keys, ids)[2]
         np.testing.assert_allclose(key, direct(renders, dec), rtol=1e-5)
-        g = jax.grad(lambda r, p, c=cfg: S.message_loss(c, decode, r, p, keys[ids], keys, ids)[2],
-                     argnums=(0, 1))(renders, dec)  # fmt: skip
+        g = jax.grad(
+            lambda r, p, c=cfg: S.message_loss(c, decode, r, p, keys[ids], keys, ids)[2], argnums=(0, 1)
+        )(renders, dec)
         for got, want in zip(g, g_direct, strict=True):
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-8)
     with pytest.raises(ValueError, match="lambda_key"):
@@ -825,8 +1015,17 @@ def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
 
     def loss_fn(psnr: float, phase: int, ref: jax.Array | None):
         cfg = wm_config(augment_per_step=0, fidelity_psnr=psnr, lambda_fidelity=4.0, lambda_key=0.0)
-        spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
-                          width=24, density_budget=1, colour_budget=1)  # fmt: skip
+        spec = S.StepSpec(
+            model=ModelConfig(),
+            wm=cfg,
+            adam_b1=0.9,
+            adam_b2=0.99,
+            phase=phase,
+            height=24,
+            width=24,
+            density_budget=1,
+            colour_budget=1,
+        )
         return jax.jit(S.make_image_loss(spec, jax.random.PRNGKey(4), messages, target, dec, None, ref))
 
     mse = jnp.mean(jnp.square(renders - reference[..., None, :]), axis=(0, 1, 3))  # per ID
@@ -849,8 +1048,11 @@ def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
 
 @settings(max_examples=60, deadline=None)
 @given(
-    start=st.floats(5.0, 40.0), rise=st.floats(0.0, 20.0), first=st.floats(0.0, 1.0),
-    width=st.floats(0.0, 1.0), total=st.integers(1, 5000),
+    start=st.floats(5.0, 40.0),
+    rise=st.floats(0.0, 20.0),
+    first=st.floats(0.0, 1.0),
+    width=st.floats(0.0, 1.0),
+    total=st.integers(1, 5000),
 )
 def test_fidelity_budget_ramps_linearly_in_db_over_the_schedule(
     start: float, rise: float, first: float, width: float, total: int
@@ -883,11 +1085,9 @@ def test_fidelity_ramp_is_checked() -> None:
     with pytest.raises(MnerfError, match="fidelity_psnr_start"):
         wm_config(fidelity_psnr_start=20.0)  # no budget to tighten to
     with pytest.raises(MnerfError, match="fidelity_ramp"):
-        wm_config(fidelity_psnr=30.0, fidelity_psnr_start=20.0,
-                                               fidelity_ramp=(0.8, 0.4))  # fmt: skip
+        wm_config(fidelity_psnr=30.0, fidelity_psnr_start=20.0, fidelity_ramp=(0.8, 0.4))
     with pytest.raises(MnerfError, match="fidelity_ramp"):
-        wm_config(fidelity_psnr=30.0, fidelity_psnr_start=20.0,
-                                               fidelity_ramp=(0.5, 1.5))  # fmt: skip
+        wm_config(fidelity_psnr=30.0, fidelity_psnr_start=20.0, fidelity_ramp=(0.5, 1.5))
 
 
 def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> None:
@@ -903,13 +1103,23 @@ def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> Non
 
     def loss(psnr: float, budget: jax.Array | None) -> jax.Array:
         cfg = wm_config(augment_per_step=0, fidelity_psnr=psnr, lambda_key=0.0)
-        spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=2, height=24,
-                          width=24, density_budget=1, colour_budget=1)  # fmt: skip
-        fn = S.make_image_loss(spec, jax.random.PRNGKey(4), message, target, dec, None, reference, None, None,
-                               budget)  # fmt: skip
+        spec = S.StepSpec(
+            model=ModelConfig(),
+            wm=cfg,
+            adam_b1=0.9,
+            adam_b2=0.99,
+            phase=2,
+            height=24,
+            width=24,
+            density_budget=1,
+            colour_budget=1,
+        )
+        fn = S.make_image_loss(
+            spec, jax.random.PRNGKey(4), message, target, dec, None, reference, None, None, budget
+        )
         return fn(image, dec["params"])[0]
 
-    np.testing.assert_allclose(loss(20.0, np.float32(10 ** -3.5)), loss(35.0, None), rtol=1e-6)
+    np.testing.assert_allclose(loss(20.0, np.float32(10**-3.5)), loss(35.0, None), rtol=1e-6)
     assert float(loss(35.0, None)) > float(loss(20.0, None)) + 1e-3  # the budget binds at 35 dB, not at 20
 
 
@@ -917,18 +1127,32 @@ def test_embedding_steps_receive_the_ramps_budget(tiny: TinyRuns) -> None:
     # The host loop hands step s the ramp's budget at s (the step reports it back as psnr_budget).
     root = tiny.root
     # No augmentations: a faster compile (the ramp does not depend on them).
-    overrides = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=1", "watermark.schedule.phase2_steps=3",
-                 "watermark.fidelity.psnr=30", "watermark.fidelity.psnr_start=10",
-                 "watermark.fidelity.ramp=0.25,0.75", "watermark.augment.per_step=0"]  # fmt: skip
+    overrides = [
+        *tiny.embed_overrides,
+        "watermark.schedule.phase1_steps=1",
+        "watermark.schedule.phase2_steps=3",
+        "watermark.fidelity.psnr=30",
+        "watermark.fidelity.psnr_start=10",
+        "watermark.fidelity.ramp=0.25,0.75",
+        "watermark.augment.per_step=0",
+    ]
     seen: dict[int, float] = {}
-    E.embed(tiny.fit, root / "ramp", 2, 8, overrides=overrides, decoder_path=tiny.decoder, progress=False,
-            on_step=lambda step, metrics: seen.__setitem__(step, metrics["psnr_budget"]))  # fmt: skip
+    E.embed(
+        tiny.fit,
+        root / "ramp",
+        2,
+        8,
+        overrides=overrides,
+        decoder_path=tiny.decoder,
+        progress=False,
+        on_step=lambda step, metrics: seen.__setitem__(step, metrics["psnr_budget"]),
+    )
     assert sorted(seen) == [0, 1, 2, 3]
     np.testing.assert_allclose([seen[s] for s in range(4)], [10.0, 10.0, 20.0, 30.0], atol=1e-3)
 
 
 def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
-    # watermark.losses.clean_negative = "clean_model": phase 2's clean term decodes the clean model's render of the
+    # losses.clean_negative = "clean_model": phase 2's clean term decodes the clean model's render of the
     # view instead of the ground-truth view; the rest of the loss is unchanged.
     from mnerf_jax.core.config import ModelConfig, WatermarkConfig
     from mnerf_jax.reader import decoder
@@ -939,16 +1163,26 @@ def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
 
     def loss(negative: str, target_image: jax.Array, ref: jax.Array | None, phase: int = 2) -> float:
         cfg = wm_config(augment_per_step=0, lambda_clean=0.5, clean_negative=negative, lambda_key=0.0)
-        spec = S.StepSpec(model=ModelConfig(), wm=cfg, adam_b1=0.9, adam_b2=0.99, phase=phase, height=24,
-                          width=24, density_budget=1, colour_budget=1)  # fmt: skip
+        spec = S.StepSpec(
+            model=ModelConfig(),
+            wm=cfg,
+            adam_b1=0.9,
+            adam_b2=0.99,
+            phase=phase,
+            height=24,
+            width=24,
+            density_budget=1,
+            colour_budget=1,
+        )
         fn = S.make_image_loss(spec, jax.random.PRNGKey(4), message, target_image, dec, None, ref)
         return float(fn(image, dec["params"])[0])
 
     assert S.uses_clean_renders(wm_config(clean_negative="clean_model"))
     assert not S.uses_clean_renders(wm_config(clean_negative="clean_model", lambda_clean=0.0))
     assert not S.uses_clean_renders(WatermarkConfig())
-    np.testing.assert_allclose(loss("clean_model", target, reference), loss("ground_truth", reference, None),
-                               rtol=1e-6)  # fmt: skip
+    np.testing.assert_allclose(
+        loss("clean_model", target, reference), loss("ground_truth", reference, None), rtol=1e-6
+    )
     assert abs(loss("clean_model", target, reference) - loss("ground_truth", target, None)) > 1e-6
     # Phase 1 has no clean term, so the negative does not matter there.
     phase1 = loss("clean_model", target, reference, 1)

@@ -29,8 +29,16 @@ def test_positional_encoding_order():
     got = np.asarray(field.positional_encoding(x, 2))[0]
     a, b = 0.3, -1.2
     # TensoRF: (x[..., None] * 2^k).reshape -> index d * F + k, then [sin ..., cos ...].
-    expected = [np.sin(a), np.sin(2 * a), np.sin(b), np.sin(2 * b),
-                np.cos(a), np.cos(2 * a), np.cos(b), np.cos(2 * b)]  # fmt: skip
+    expected = [
+        np.sin(a),
+        np.sin(2 * a),
+        np.sin(b),
+        np.sin(2 * b),
+        np.cos(a),
+        np.cos(2 * a),
+        np.cos(b),
+        np.cos(2 * b),
+    ]
     np.testing.assert_allclose(got, expected, rtol=1e-6)
 
 

@@ -149,8 +149,10 @@ def test_confusion_matrix_and_summary() -> None:
     assert np.array(summary["confusion_decision"])[2, 3] == 1
     # The fourth render (ID 0) reads ID 1's key in full: named, but as the wrong ID.
     assert summary["misidentification_rate"] == pytest.approx(1 / 5)
-    assert summary["misidentification_rate_by_test"] == {"binomial": pytest.approx(1 / 5),
-                                                         "sign_flip": pytest.approx(1 / 5)}  # fmt: skip
+    assert summary["misidentification_rate_by_test"] == {
+        "binomial": pytest.approx(1 / 5),
+        "sign_flip": pytest.approx(1 / 5),
+    }
 
 
 def test_sign_flip_decision_names_matches_wrong_only_in_doubtful_bits() -> None:

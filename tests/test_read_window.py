@@ -105,8 +105,12 @@ def test_decode_with_a_window_reads_the_cropped_image(make_decoder, tmp_path) ->
 
 
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(top=st.integers(0, SIDE - 12), left=st.integers(0, SIDE - 12), dy=st.integers(-30, 30),
-       dx=st.integers(-30, 30))  # fmt: skip
+@given(
+    top=st.integers(0, SIDE - 12),
+    left=st.integers(0, SIDE - 12),
+    dy=st.integers(-30, 30),
+    dx=st.integers(-30, 30),
+)
 def test_an_offset_moves_the_window_by_that_much_within_the_image(
     top: int, left: int, dy: int, dx: int
 ) -> None:
@@ -145,8 +149,9 @@ def test_a_jittered_read_is_the_mean_over_the_moved_windows(make_decoder, tmp_pa
     np.testing.assert_allclose(np.asarray(plain), by_hand[0], atol=1e-5)
     assert not np.allclose(np.asarray(jittered), np.asarray(plain), atol=1e-4)
     whole = extract.decode(loaded.variables, x, loaded.wavelet)
-    np.testing.assert_array_equal(np.asarray(extract.decode(loaded.variables, x, loaded.wavelet, jitter=2)),
-                                  np.asarray(whole))  # fmt: skip
+    np.testing.assert_array_equal(
+        np.asarray(extract.decode(loaded.variables, x, loaded.wavelet, jitter=2)), np.asarray(whole)
+    )
 
 
 def test_extract_with_a_run_decoder_file_reads_its_recorded_window(make_decoder, tmp_path) -> None:  # noqa: ANN001
@@ -160,12 +165,14 @@ def test_extract_with_a_run_decoder_file_reads_its_recorded_window(make_decoder,
 
     plain = decoder_io.load_decoder(make_decoder(tmp_path / "plain.npz", 8))
     path = tmp_path / "run_decoder.npz"
-    decoder_io.save_decoder(path, plain.variables, {"read_window": 0.5, "read_background": 1.0,
-                                                     "read_jitter": 1})  # fmt: skip
+    decoder_io.save_decoder(
+        path, plain.variables, {"read_window": 0.5, "read_background": 1.0, "read_jitter": 1}
+    )
     image = (object_on_white(30, 2)[0] * 255).astype(np.uint8)
     iio.imwrite(tmp_path / "view.png", image)
-    args = argparse.Namespace(images=[tmp_path / "view.png"], decoder=path, bits=None, batch=4,
-                              read_jitter=None)  # fmt: skip
+    args = argparse.Namespace(
+        images=[tmp_path / "view.png"], decoder=path, bits=None, batch=4, read_jitter=None
+    )
     records, _ = extract_cmd.extract_records(args)
     want = extract.decode(plain.variables, image[None], plain.wavelet, window=0.5, jitter=1)[0]
     # The records round logits to 4 decimals; this small random decoder's logits are ~1e-2.

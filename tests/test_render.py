@@ -66,8 +66,14 @@ def numpy_field(cfg: ModelConfig, res, seed: int, scale: float = 1.0) -> dict:
         return {"planes": as32(planes), "lines": as32(lines)}
 
     width, n_in = cfg.mlp_width, field.mlp_in_features(cfg)
-    mlp_shapes = {"w0": (n_in, width), "b0": (width,), "w1": (width, width), "b1": (width,), "w2": (width, 3),
-                  "b2": (3,)}  # fmt: skip
+    mlp_shapes = {
+        "w0": (n_in, width),
+        "b0": (width,),
+        "w1": (width, width),
+        "b1": (width,),
+        "w2": (width, 3),
+        "b2": (3,),
+    }
     return {
         "density": vm(cfg.density_ranks),
         "appearance": vm(cfg.appearance_ranks),
@@ -207,8 +213,9 @@ def test_ndc_slab_scales_distances_by_direction_norm():
         )
         optical = 0.2 * 30 * 0.01 * (2.0 * scale) * 25.0
         np.testing.assert_allclose(float(out["acc"][0]), 1 - np.exp(-optical), rtol=1e-4)
-        compact = render.render_rays(SLAB, params, None, o, d, geo, None, train=False, density_budget=128,
-                                     colour_budget=48)  # fmt: skip
+        compact = render.render_rays(
+            SLAB, params, None, o, d, geo, None, train=False, density_budget=128, colour_budget=48
+        )
         np.testing.assert_allclose(np.asarray(compact["rgb"]), np.asarray(out["rgb"]), atol=1e-6)
         assert int(compact["density_overflow"]) == 0 and int(compact["colour_overflow"]) == 0
 
@@ -407,8 +414,9 @@ def test_alpha_mask_skips_empty_space_and_keeps_the_image():
     after = _render(SPHERE, params, masked, rays_o, rays_d, None, None)
     np.testing.assert_allclose(np.asarray(after["rgb"]), np.asarray(before["rgb"]), atol=1e-5)
     assert int(after["density_count"]) < 0.5 * int(before["density_count"])
-    compact = _render(SPHERE, params, masked, rays_o, rays_d, int(after["density_count"]),
-                      int(after["colour_count"]))  # fmt: skip
+    compact = _render(
+        SPHERE, params, masked, rays_o, rays_d, int(after["density_count"]), int(after["colour_count"])
+    )
     np.testing.assert_allclose(np.asarray(compact["rgb"]), np.asarray(after["rgb"]), atol=1e-5)
 
     box = alpha_mask.shrink_box_from_mask(mask, geo.aabb)

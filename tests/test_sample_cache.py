@@ -1,4 +1,4 @@
-"""The cached source (watermark.schedule.cache_source): cached renders equal the ray-marched ones, in value and in the
+"""The cached source (schedule.cache_source): cached renders equal the ray-marched ones, in value and in the
 watermark's gradient; a tiny embed with it leaves the fitted field as it was."""
 
 from __future__ import annotations
@@ -56,8 +56,9 @@ def test_a_cached_render_equals_the_ray_marched_render_of_every_id() -> None:
     fns = W.field_fns(MODEL, CFG)
     cond = W.condition_many(params, ids, CFG)
     cached = sample_cache.cached_render(params, cond, view, CFG, geometry.white_bg)
-    marched = render.render_rays(fns, params, cond, o, d, geometry, None, train=False, density_budget=None,
-                                 colour_budget=None)  # fmt: skip
+    marched = render.render_rays(
+        fns, params, cond, o, d, geometry, None, train=False, density_budget=None, colour_budget=None
+    )
     assert cached.shape == (24, 9)
     assert float(jnp.min(marched["acc"])) < 0.99  # background shows on some rays
     np.testing.assert_allclose(np.asarray(cached), np.asarray(marched["rgb"]), rtol=1e-5, atol=1e-6)
@@ -78,8 +79,18 @@ def test_the_cached_renders_gradient_is_the_watermarks_gradient_through_the_ray_
         return jnp.sum(rgb * probe)
 
     def marched_loss(p: dict) -> jax.Array:
-        out = render.render_rays(fns, p, W.condition_many(p, ids, CFG), o, d, geometry, None, train=False,
-                                 density_budget=None, colour_budget=None)  # fmt: skip
+        out = render.render_rays(
+            fns,
+            p,
+            W.condition_many(p, ids, CFG),
+            o,
+            d,
+            geometry,
+            None,
+            train=False,
+            density_budget=None,
+            colour_budget=None,
+        )
         return jnp.sum(out["rgb"] * probe)
 
     # Both compiled as the embedding step is (xla_cpu.jit_cpu_tuned): the suite's backend optimisation level 0
@@ -105,9 +116,14 @@ def test_cache_source_needs_a_last_layer_film_variant_and_no_jitter() -> None:
 
 def test_a_tiny_embed_with_a_cached_source_trains_only_the_watermark(tiny: TinyRuns) -> None:
     # No augmentations: a faster compile (the cache does not depend on them).
-    overrides = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=2", "watermark.schedule.phase2_steps=3",
-                 "watermark.schedule.cache_source=true", "watermark.schedule.jitter=false",
-                 "watermark.augment.per_step=0"]  # fmt: skip
+    overrides = [
+        *tiny.embed_overrides,
+        "watermark.schedule.phase1_steps=2",
+        "watermark.schedule.phase2_steps=3",
+        "watermark.schedule.cache_source=true",
+        "watermark.schedule.jitter=false",
+        "watermark.augment.per_step=0",
+    ]
     out = tiny.root / "cached"
     result = E.embed(tiny.fit, out, 2, 8, overrides=overrides, decoder_path=tiny.decoder, progress=False)
     assert result.steps == 5
@@ -132,15 +148,21 @@ def test_a_tiny_embed_with_a_cached_source_trains_only_the_watermark(tiny: TinyR
     pairs = zip(jax.tree.leaves(start["wm"]), jax.tree.leaves(wm.params["wm"]), strict=True)
     assert max(float(np.abs(np.asarray(a) - np.asarray(b)).max()) for a, b in pairs) > 0  # it learnt
     # Phase 3's training renders from the cache are the watermarked run's renders of every ID.
-    from_cache = sample_cache.every_id_renders(cache, wm.params, wm.config.watermark, 2, wm.geometry.white_bg,
-                                               ids_per_render=1)  # fmt: skip
+    from_cache = sample_cache.every_id_renders(
+        cache, wm.params, wm.config.watermark, 2, wm.geometry.white_bg, ids_per_render=1
+    )
     rendered = wm_run.render_every_id(wm, split.cameras)
     for n in (0, 1):
         np.testing.assert_allclose(from_cache[n].reshape(rendered[n].shape), rendered[n], atol=1e-4)
     # Resumed, it is finished; resumed without the switch, it is another config.
-    again = E.embed(tiny.fit, out, 2, 8, resume=True, overrides=overrides, decoder_path=tiny.decoder,
-                    progress=False)  # fmt: skip
+    again = E.embed(
+        tiny.fit, out, 2, 8, resume=True, overrides=overrides, decoder_path=tiny.decoder, progress=False
+    )
     assert again.steps == 5
-    plain = [*tiny.embed_overrides, "watermark.schedule.phase1_steps=2", "watermark.schedule.phase2_steps=3"]  # ray-marched
+    plain = [
+        *tiny.embed_overrides,
+        "watermark.schedule.phase1_steps=2",
+        "watermark.schedule.phase2_steps=3",
+    ]  # ray-marched
     with pytest.raises(MnerfError, match="cache_source"):
         E.embed(tiny.fit, out, 2, 8, resume=True, overrides=plain, decoder_path=tiny.decoder, progress=False)

@@ -33,7 +33,8 @@ def test_equal_weights_give_the_binomial_test(bits: int, weight: int, data: st.D
     agreeing = data.draw(st.integers(0, bits))
     observed = weight * (2 * agreeing - bits)
     assert S.sign_flip_tail(np.full(bits, weight), observed) == pytest.approx(
-        S.binomial_tail(agreeing, bits), rel=1e-12)  # fmt: skip
+        S.binomial_tail(agreeing, bits), rel=1e-12
+    )
     # Any threshold, reachable or not, and zero weights mixed in (equal weights take a shortcut).
     small = min(bits, 10)
     w = np.concatenate([np.full(small, weight), np.zeros(data.draw(st.integers(0, 3)), np.int64)])

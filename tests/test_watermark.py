@@ -172,13 +172,20 @@ def test_the_cpu_preset_moves_steps_from_phase_1_to_phase_2() -> None:
     cfg = config.load_preset("embed_cpu").watermark
     assert W.phase_steps(cfg, num_ids=16) == (100, 2600) and cfg.time_budget.minutes == 60
     assert cfg.losses.id_loss_power == 1.0 and cfg.reading.window == 0.72 and cfg.reading.background == 1.0
-    plain = {**config.flat_items(cfg), "schedule.phase1_steps": -1, "schedule.phase2_steps": -1,
-             "time_budget.minutes": 0.0, "losses.id_loss_power": 0.0, "reading.window": 0.0}
+    plain = {
+        **config.flat_items(cfg),
+        "schedule.phase1_steps": -1,
+        "schedule.phase2_steps": -1,
+        "time_budget.minutes": 0.0,
+        "losses.id_loss_power": 0.0,
+        "reading.window": 0.0,
+    }
     assert plain == config.flat_items(WatermarkConfig())
 
 
-def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no_attacks_and_a_phase_3(
-) -> None:
+def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no_attacks_and_a_phase_3() -> (
+    None
+):
     from mnerf_jax.core import config
     from mnerf_jax.watermark.deferred import patch_layout
     from mnerf_jax.watermark.step import fidelity_budget_db
@@ -186,11 +193,23 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
     cfg = config.load_preset("embed_cpu_quality").watermark
     base = config.load_preset("embed_cpu").watermark
     assert {
-        **config.flat_items(cfg), "fidelity.psnr": 0.0, "fidelity.psnr_start": 0.0, "fidelity.ramp": (0.0, 0.0),
-        "augment.prob": 0.75, "schedule.patch_size": 64, "schedule.phase2_steps": 2600, "phase3.steps": 0,
-        "phase3.views": 0, "phase3.reserve_min": 0.0, "phase3.batch": 32, "phase3.lambda_clean": 0.3,
-        "reading.jitter": 0, "phase3.view_density": "angles", "phase3.elevation_margin": 0.0,
-        "schedule.cache_source": False, "schedule.jitter": True,
+        **config.flat_items(cfg),
+        "fidelity.psnr": 0.0,
+        "fidelity.psnr_start": 0.0,
+        "fidelity.ramp": (0.0, 0.0),
+        "augment.prob": 0.75,
+        "schedule.patch_size": 64,
+        "schedule.phase2_steps": 2600,
+        "phase3.steps": 0,
+        "phase3.views": 0,
+        "phase3.reserve_min": 0.0,
+        "phase3.batch": 32,
+        "phase3.lambda_clean": 0.3,
+        "reading.jitter": 0,
+        "phase3.view_density": "angles",
+        "phase3.elevation_margin": 0.0,
+        "schedule.cache_source": False,
+        "schedule.jitter": True,
     } == config.flat_items(base)
     assert cfg.augment.prob == 0.0
     # The fitted field frozen and its samples cached (sample_cache.py), which needs unjittered samples.
@@ -207,9 +226,16 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
     # Then the decoder alone: 8,000 steps of 16 renders on the training views and 200 novel views, its
     # negatives weighed 1, with 19 of the 60 minutes kept for it; the novel views spread over the sphere's
     # area 5° past the training cameras' elevations; renders are read over the 9 windows within a pixel.
-    phase3 = (cfg.phase3.steps, cfg.phase3.batch, cfg.phase3.views, cfg.phase3.lambda_clean,
-              cfg.phase3.reserve_min, cfg.time_budget.minutes, cfg.phase3.view_density,
-              cfg.phase3.elevation_margin)
+    phase3 = (
+        cfg.phase3.steps,
+        cfg.phase3.batch,
+        cfg.phase3.views,
+        cfg.phase3.lambda_clean,
+        cfg.phase3.reserve_min,
+        cfg.time_budget.minutes,
+        cfg.phase3.view_density,
+        cfg.phase3.elevation_margin,
+    )
     assert phase3 == (8000, 16, 200, 1.0, 19, 60, "sphere", 5.0) and cfg.reading.jitter == 1
 
 
@@ -244,8 +270,18 @@ def test_field_fns_render_differs_by_id() -> None:
     dirs = jnp.concatenate([jnp.linspace(-0.2, 0.2, 16)[:, None], jnp.zeros((16, 1)), jnp.ones((16, 1))], -1)
     dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
     outs = [
-        render.render_rays(fns, params, W.condition(params, i, cfg), o, dirs, geometry, None, train=False,
-                           density_budget=None, colour_budget=None)["rgb"]
+        render.render_rays(
+            fns,
+            params,
+            W.condition(params, i, cfg),
+            o,
+            dirs,
+            geometry,
+            None,
+            train=False,
+            density_budget=None,
+            colour_budget=None,
+        )["rgb"]
         for i in (0, 1)
     ]
     assert float(jnp.abs(outs[0] - outs[1]).max()) > 1e-3
@@ -280,8 +316,9 @@ def test_render_rays_with_several_ids_equals_one_render_per_id(colour_budget: in
     budget = None if colour_budget is None else 16 * 32
     kwargs = dict(train=False, density_budget=budget, colour_budget=colour_budget)
     ids = jnp.array([1, 3])
-    many = render.render_rays(fns, params, W.condition_many(params, ids, cfg), o, dirs, geometry, None,
-                              **kwargs)  # fmt: skip
+    many = render.render_rays(
+        fns, params, W.condition_many(params, ids, cfg), o, dirs, geometry, None, **kwargs
+    )
     assert many["rgb"].shape == (16, 6)
     assert float(jnp.min(many["acc"])) < 0.99  # some background shows: its colour is tiled per ID
     for k, i in enumerate((1, 3)):

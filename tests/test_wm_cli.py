@@ -23,9 +23,20 @@ if TYPE_CHECKING:
     from conftest import TinyRuns
 
 EVAL_KEYS = (
-    "bit_accuracy_mean", "bit_accuracy_min", "bit_accuracy_png_mean", "psnr", "psnr_clean_model", "ssim",
-    "lpips", "identification_accuracy", "clean_bit_accuracy", "num_ids", "bits", "split", "views",
-)  # fmt: skip
+    "bit_accuracy_mean",
+    "bit_accuracy_min",
+    "bit_accuracy_png_mean",
+    "psnr",
+    "psnr_clean_model",
+    "ssim",
+    "lpips",
+    "identification_accuracy",
+    "clean_bit_accuracy",
+    "num_ids",
+    "bits",
+    "split",
+    "views",
+)
 
 
 def _one_error_line(err: str, needle: str) -> None:
@@ -40,8 +51,20 @@ def id_renders(tiny: TinyRuns, tmp_path_factory: pytest.TempPathFactory) -> dict
 
     root = tmp_path_factory.mktemp("renders")
     for k in (0, 1):
-        code = cli.main(["render", "--run", str(tiny.wm), "--id", str(k), "--views", "2", "--out",
-                         str(root / f"id{k}"), "--quiet"])  # fmt: skip
+        code = cli.main(
+            [
+                "render",
+                "--run",
+                str(tiny.wm),
+                "--id",
+                str(k),
+                "--views",
+                "2",
+                "--out",
+                str(root / f"id{k}"),
+                "--quiet",
+            ]
+        )
         assert code == 0
     return {k: root / f"id{k}" for k in (0, 1)}
 
@@ -56,8 +79,13 @@ def test_load_run_loads_either_kind_from_a_fresh_process(tiny: TinyRuns) -> None
         "    print(loaded.kind, loaded.step, loaded.extras.get('num_ids'), loaded.extras.get('id'))\n"
     )
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
-    done = subprocess.run([sys.executable, "-c", script, str(tiny.wm), str(tiny.fit)], capture_output=True,
-                          text=True, env=env, timeout=300)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(tiny.wm), str(tiny.fit)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()
     assert lines[0].split() == ["multinerf", "80", "2", "0"]
@@ -120,8 +148,9 @@ def _binomial_tail(k: int, bits: int) -> float:
     return sum(math.comb(bits, j) for j in range(k, bits + 1)) / 2**bits
 
 
-def test_extract_identifies_the_id_of_rendered_images(tiny: TinyRuns, id_renders: dict[int, Path],
-                                                      tmp_path: Path, mnerf) -> None:  # fmt: skip
+def test_extract_identifies_the_id_of_rendered_images(
+    tiny: TinyRuns, id_renders: dict[int, Path], tmp_path: Path, mnerf
+) -> None:
     """``extract --run`` reports, per image, the bits the run's decoder reads, the key of highest soft
     correlation with its logits, that key's agreement and p-values, and the decision at the threshold.
 
@@ -181,8 +210,9 @@ def test_extract_identifies_the_id_of_rendered_images(tiny: TinyRuns, id_renders
         assert r["threshold"] == 0.5 and r["id"] == (r["best_id"] if r["p_corrected"] < 0.5 else -1)
         assert identification_line(r).startswith(f"ID {r['id']}" if r["id"] >= 0 else "no watermark")
     # --test sign_flip decides by the confidence-weighted p-value (both are in every record).
-    code, out, _ = mnerf("extract", "--run", tiny.wm, *paths, "--threshold", "0.5", "--test", "sign_flip",
-                         "--json")  # fmt: skip
+    code, out, _ = mnerf(
+        "extract", "--run", tiny.wm, *paths, "--threshold", "0.5", "--test", "sign_flip", "--json"
+    )
     flip = [json.loads(line) for line in out.splitlines()]
     for r, b in zip(flip, loose, strict=True):
         assert r["test"] == "sign_flip" and b["test"] == "binomial" and r["p_value"] == b["p_value"]
@@ -206,8 +236,9 @@ def test_extract_identifies_the_id_of_rendered_images(tiny: TinyRuns, id_renders
         assert code == 0 and f"  ID {k}  (best ID {k}, bit accuracy 100.00%" in out
 
 
-def test_extract_errors_and_the_decoder_mode(tiny: TinyRuns, id_renders: dict[int, Path], tmp_path: Path,
-                                             mnerf) -> None:  # fmt: skip
+def test_extract_errors_and_the_decoder_mode(
+    tiny: TinyRuns, id_renders: dict[int, Path], tmp_path: Path, mnerf
+) -> None:
     png = sorted(id_renders[1].glob("*.png"))[0]
     gray = tmp_path / "gray.png"
     iio.imwrite(gray, np.zeros((32, 32), np.uint8))
@@ -265,9 +296,15 @@ def test_demo_resumes_its_fitted_run_and_writes_the_report(
     (out / "demo.json").write_text("{}")  # an earlier demo's folder
     # The step's plumbing, not the embedding's quality (tests/test_embed.py has that). The run recorded the
     # preset's [watermark] section: these --set items must still reach the embedding (1 step, not 1,000).
-    sets = [*TINY_FIT, *tiny.embed_overrides, "watermark.schedule.phase1_steps=1", "watermark.schedule.phase2_steps=0"]
-    code, stdout, err = mnerf("demo", "--out", out, *[a for s in sets for a in ("--set", s)], "--frames", "2",
-                              "--quiet")  # fmt: skip
+    sets = [
+        *TINY_FIT,
+        *tiny.embed_overrides,
+        "watermark.schedule.phase1_steps=1",
+        "watermark.schedule.phase2_steps=0",
+    ]
+    code, stdout, err = mnerf(
+        "demo", "--out", out, *[a for s in sets for a in ("--set", s)], "--frames", "2", "--quiet"
+    )
     assert code == 0, err
     notes = [line for line in err.splitlines() if "fresh decoder" in line]
     assert len(notes) == 1 and "--decoder FILE" in notes[0], err

@@ -26,13 +26,26 @@ def _fake_eval(num_ids: int = 3, bits: int = 8) -> dict:
         for n in range(num_ids)
     ]
     return {
-        "split": "test", "views": 2, "num_ids": num_ids, "bits": bits, "variant": "multinerf",
-        "bit_accuracy_mean": 0.7, "bit_accuracy_min": 0.6, "bit_accuracy_png_mean": 0.65, "psnr": 29.5,
-        "psnr_clean_model": 35.25, "clean_psnr": 30.0, "ssim": 0.95, "lpips": 0.02,
-        "identification_accuracy": 1.0, "verified_identification_accuracy": 0.0, "clean_bit_accuracy": 0.5,
-        "clean_false_detection_rate": 0.0, "per_id": per_id,
+        "split": "test",
+        "views": 2,
+        "num_ids": num_ids,
+        "bits": bits,
+        "variant": "multinerf",
+        "bit_accuracy_mean": 0.7,
+        "bit_accuracy_min": 0.6,
+        "bit_accuracy_png_mean": 0.65,
+        "psnr": 29.5,
+        "psnr_clean_model": 35.25,
+        "clean_psnr": 30.0,
+        "ssim": 0.95,
+        "lpips": 0.02,
+        "identification_accuracy": 1.0,
+        "verified_identification_accuracy": 0.0,
+        "clean_bit_accuracy": 0.5,
+        "clean_false_detection_rate": 0.0,
+        "per_id": per_id,
         "identification": {"threshold": 1e-3, "min_attainable_p": num_ids / 2**bits},
-    }  # fmt: skip
+    }
 
 
 def test_write_report(tmp_path) -> None:
@@ -48,8 +61,11 @@ def test_write_report(tmp_path) -> None:
     assert "`01010101`" in text
     # An evaluation written before the wrong-ID rate was reported has no such row; a newer one has both.
     assert "wrong ID named" not in text
-    rows = dict(report.summary_rows({**_fake_eval(), "misidentification_rate_by_test": {"binomial": 0.01,
-                                                                                       "sign_flip": 0.25}}))
+    rows = dict(
+        report.summary_rows(
+            {**_fake_eval(), "misidentification_rate_by_test": {"binomial": 0.01, "sign_flip": 0.25}}
+        )
+    )
     assert rows["wrong ID named (binomial p < threshold)"] == "1.00%"
     assert rows["wrong ID named (sign-flip p < threshold)"] == "25.00%"
     import imageio.v3 as iio
@@ -107,9 +123,21 @@ def tiny_eval(tiny) -> tuple[object, dict]:
 def test_tiny_run_identifies_its_ids(tiny_eval) -> None:
     runs, result = tiny_eval
     saved = json.loads((runs.wm / "eval-test.json").read_text())
-    for key in ("bit_accuracy_mean", "bit_accuracy_min", "bit_accuracy_png_mean", "psnr", "psnr_clean_model",
-                "ssim", "lpips", "identification_accuracy", "clean_bit_accuracy", "num_ids", "bits", "split",
-                "views"):  # fmt: skip
+    for key in (
+        "bit_accuracy_mean",
+        "bit_accuracy_min",
+        "bit_accuracy_png_mean",
+        "psnr",
+        "psnr_clean_model",
+        "ssim",
+        "lpips",
+        "identification_accuracy",
+        "clean_bit_accuracy",
+        "num_ids",
+        "bits",
+        "split",
+        "views",
+    ):
         assert key in saved, key
     assert saved["num_ids"] == 2 and saved["bits"] == 8 and saved["split"] == "test" and saved["views"] == 6
     # The best-matching key is the ID the view was rendered with (at most one miss in 12); bits above what
@@ -166,8 +194,9 @@ def test_identify_images_refuses_non_rgb_files(tiny_eval, tmp_path) -> None:
 def test_report_from_a_real_evaluation(tiny_eval, tmp_path) -> None:
     _, result = tiny_eval
     renders = {n: r[0] for n, r in result["_renders"].items()}
-    paths = report.write_report(tmp_path, {k: v for k, v in result.items() if not k.startswith("_")}, renders,
-                                result["_clean"][0])  # fmt: skip
+    paths = report.write_report(
+        tmp_path, {k: v for k, v in result.items() if not k.startswith("_")}, renders, result["_clean"][0]
+    )
     text = paths["markdown"].read_text()
     assert f"{result['bit_accuracy_mean']:.2%}" in text and paths["grid"].is_file()
 
@@ -196,8 +225,9 @@ def test_attacks_on_the_saved_renders(tiny_eval, mnerf) -> None:
     assert list(result["attacks"]) == ["none", "box_blur", "gaussian_noise"]
     assert result["views"] == saved["views"] and result["num_ids"] == 2 and result["bits"] == 8
     # No attack is the evaluation's own PNG figure (the same files, decoded again; at most one bit of 96).
-    assert result["attacks"]["none"]["bit_accuracy_mean"] == pytest.approx(saved["bit_accuracy_png_mean"],
-                                                                           abs=1 / 96)  # fmt: skip
+    assert result["attacks"]["none"]["bit_accuracy_mean"] == pytest.approx(
+        saved["bit_accuracy_png_mean"], abs=1 / 96
+    )
     for s in result["attacks"].values():
         assert 0.0 <= s["bit_accuracy_min"] <= s["bit_accuracy_mean"] <= 1.0
         assert 0.0 <= s["verified_identification_accuracy"] <= s["identification_accuracy"] <= 1.0
