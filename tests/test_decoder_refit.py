@@ -281,7 +281,7 @@ def test_tiny_embed_with_phase_three_and_its_resume(tiny: TinyRuns) -> None:
     after = wm_run.load_watermarked_run(run)
     assert after.step == before.step + 6
     assert json.loads((run / "embed.json").read_text())["phase"] == 3
-    assert json.loads((run / "config.json").read_text())["watermark"]["phase3_steps"] == 6
+    assert json.loads((run / "config.json").read_text())["watermark"]["phase3"]["steps"] == 6
     for x, y in zip(jax.tree.leaves(before.params), jax.tree.leaves(after.params), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     dec_before, dec_after = before.extras["decoder"], after.extras["decoder"]
@@ -373,7 +373,9 @@ def test_the_refit_set_reuses_clean_renders_of_the_training_views_it_is_given(ti
     wm = wm_run.load_watermarked_run(tiny.wm)
     clean = wm_run.load_run(tiny.fit)
     split = wm.load_scene(None, splits=("train",)).split("train")
-    cfg = dataclasses.replace(wm.config.watermark, phase3_views=2)
+    cfg = dataclasses.replace(
+        wm.config.watermark, phase3=dataclasses.replace(wm.config.watermark.phase3, views=2)
+    )
     rendered = decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images, clean)
     references = np.stack(runs.render_views(clean, split.cameras)).astype(np.float16)
     reused = decoder_refit.render_refit_set(
