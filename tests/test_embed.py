@@ -16,6 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mnerf_jax.core import rundir
+from mnerf_jax.core.config import ModelConfig, WatermarkConfig
 from mnerf_jax.core.config import watermark_from_flat as wm_config
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.reader import decoder_io, dwt
@@ -31,6 +32,21 @@ if TYPE_CHECKING:
     from conftest import TinyRuns  # the `tiny` fixture's type (tests/conftest.py)
 
 # ----------------------------------------------------------------------------- toy differentiable renderer
+
+
+def _image_loss_spec(cfg: WatermarkConfig, phase: int, side: int) -> S.StepSpec:
+    """The step spec of the image-loss tests: a default model, a ``side``-pixel square view, unit budgets."""
+    return S.StepSpec(
+        model=ModelConfig(),
+        wm=cfg,
+        adam_b1=0.9,
+        adam_b2=0.99,
+        phase=phase,
+        height=side,
+        width=side,
+        density_budget=1,
+        colour_budget=1,
+    )
 
 
 def _toy_params(key: jax.Array) -> dict:
@@ -215,7 +231,6 @@ def _small_watermarked_scene(cfg, num_ids: int, h: int, w: int) -> tuple:
     """``(model, params, geometry, rays, targets [h·w, 3])``: a random watermarked TensoRF on a 6³ grid with
     semi-transparent matter (σ ≈ 2, Δt = 0.3, distance scale 1: every sample gets gradient), seen by an
     ``h × w`` pinhole camera at z = 4."""
-    from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.tensorf import field
 
     model = ModelConfig(
@@ -303,7 +318,6 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
 def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_message() -> None:
     # losses.lambda_clean adds λ·BCE(decoder(ground truth), ½) in phase 2: a constant in the image (the
     # field's gradient is unchanged) that trains the decoder to read nothing from unwatermarked images.
-    from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.imaging import losses
     from mnerf_jax.reader import decoder
 
@@ -314,17 +328,7 @@ def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_messag
 
     def loss_fn(lambda_clean: float, phase: int = 2):
         cfg = wm_config(augment_per_step=0, lambda_clean=lambda_clean, lambda_key=0.0)
-        spec = S.StepSpec(
-            model=ModelConfig(),
-            wm=cfg,
-            adam_b1=0.9,
-            adam_b2=0.99,
-            phase=phase,
-            height=24,
-            width=24,
-            density_budget=1,
-            colour_budget=1,
-        )
+        spec = _image_loss_spec(cfg, phase, 24)
         return S.make_image_loss(spec, jax.random.PRNGKey(3), message, target, dec)
 
     with_clean, without = loss_fn(0.5), loss_fn(0.0)
@@ -734,7 +738,6 @@ def test_non_rgb_images_are_refused() -> None:
 
 
 def _wm_params(variant: str) -> dict:
-    from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.tensorf import field
 
     model = ModelConfig(density_ranks=(2, 2, 2), appearance_ranks=(2, 2, 2), app_features=4, mlp_width=8)
@@ -837,7 +840,6 @@ def test_step_config_keeps_what_the_compiled_step_reads() -> None:
 
 def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.MonkeyPatch) -> None:
     # watermark.augment.names reaches the policy inside the phase-2 image loss (traced, not run).
-    from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.imaging import augment
     from mnerf_jax.reader import decoder
 
@@ -853,17 +855,7 @@ def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.M
     image = jnp.full((16, 16, 3), 0.5)
     for names, expect in (((), None), (("jpeg", "hue"), ("jpeg", "hue"))):
         wm = wm_config(augment_names=names, lambda_key=0.0)
-        spec = S.StepSpec(
-            model=ModelConfig(),
-            wm=wm,
-            adam_b1=0.9,
-            adam_b2=0.99,
-            phase=2,
-            height=16,
-            width=16,
-            density_budget=1,
-            colour_budget=1,
-        )
+        spec = _image_loss_spec(wm, 2, 16)
         loss = S.make_image_loss(spec, jax.random.PRNGKey(1), jnp.zeros(8), image, dec)
         seen.clear()
         jax.eval_shape(loss, image, dec["params"])
@@ -1009,7 +1001,6 @@ def test_key_term_is_the_key_cross_entropy_with_its_gradient_to_renders_and_deco
 
 def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
     # watermark.fidelity.psnr: + λ·mean_k relu(MSE(render_k, clean) / 10^(−psnr/10) − 1): zero inside.
-    from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.reader import decoder
 
     dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
@@ -1021,17 +1012,7 @@ def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
 
     def loss_fn(psnr: float, phase: int, ref: jax.Array | None):
         cfg = wm_config(augment_per_step=0, fidelity_psnr=psnr, lambda_fidelity=4.0, lambda_key=0.0)
-        spec = S.StepSpec(
-            model=ModelConfig(),
-            wm=cfg,
-            adam_b1=0.9,
-            adam_b2=0.99,
-            phase=phase,
-            height=24,
-            width=24,
-            density_budget=1,
-            colour_budget=1,
-        )
+        spec = _image_loss_spec(cfg, phase, 24)
         return jax.jit(S.make_image_loss(spec, jax.random.PRNGKey(4), messages, target, dec, None, ref))
 
     mse = jnp.mean(jnp.square(renders - reference[..., None, :]), axis=(0, 1, 3))  # per ID
@@ -1099,7 +1080,6 @@ def test_fidelity_ramp_is_checked() -> None:
 def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> None:
     # The ramp hands each step its MSE budget in the batch (no recompilation per value): a loss built with
     # fidelity_budget = the MSE of 35 dB equals one whose config says 35 dB, whatever the config says then.
-    from mnerf_jax.core.config import ModelConfig
     from mnerf_jax.reader import decoder
 
     dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
@@ -1109,17 +1089,7 @@ def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> Non
 
     def loss(psnr: float, budget: jax.Array | None) -> jax.Array:
         cfg = wm_config(augment_per_step=0, fidelity_psnr=psnr, lambda_key=0.0)
-        spec = S.StepSpec(
-            model=ModelConfig(),
-            wm=cfg,
-            adam_b1=0.9,
-            adam_b2=0.99,
-            phase=2,
-            height=24,
-            width=24,
-            density_budget=1,
-            colour_budget=1,
-        )
+        spec = _image_loss_spec(cfg, 2, 24)
         fn = S.make_image_loss(
             spec, jax.random.PRNGKey(4), message, target, dec, None, reference, None, None, budget
         )
@@ -1160,7 +1130,6 @@ def test_embedding_steps_receive_the_ramps_budget(tiny: TinyRuns) -> None:
 def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
     # losses.clean_negative = "clean_model": phase 2's clean term decodes the clean model's render of the
     # view instead of the ground-truth view; the rest of the loss is unchanged.
-    from mnerf_jax.core.config import ModelConfig, WatermarkConfig
     from mnerf_jax.reader import decoder
 
     dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
@@ -1169,17 +1138,7 @@ def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
 
     def loss(negative: str, target_image: jax.Array, ref: jax.Array | None, phase: int = 2) -> float:
         cfg = wm_config(augment_per_step=0, lambda_clean=0.5, clean_negative=negative, lambda_key=0.0)
-        spec = S.StepSpec(
-            model=ModelConfig(),
-            wm=cfg,
-            adam_b1=0.9,
-            adam_b2=0.99,
-            phase=phase,
-            height=24,
-            width=24,
-            density_budget=1,
-            colour_budget=1,
-        )
+        spec = _image_loss_spec(cfg, phase, 24)
         fn = S.make_image_loss(spec, jax.random.PRNGKey(4), message, target_image, dec, None, ref)
         return float(fn(image, dec["params"])[0])
 
