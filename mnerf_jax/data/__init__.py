@@ -19,7 +19,15 @@ from mnerf_jax.data.rays import (
     world_rays,
 )
 from mnerf_jax.data.trajectory import camera_path
-from mnerf_jax.data.types import Cameras, DataError, DataWarning, NDCSpace, Scene, SceneSplit
+from mnerf_jax.data.types import (
+    Cameras,
+    DataError,
+    DataWarning,
+    NDCSpace,
+    Scene,
+    SceneSplit,
+    SceneTransform,
+)
 
 __all__ = [
     "DATASETS",
@@ -29,6 +37,7 @@ __all__ = [
     "NDCSpace",
     "Scene",
     "SceneSplit",
+    "SceneTransform",
     "all_rays",
     "camera_path",
     "camera_rays",

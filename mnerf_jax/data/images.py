@@ -1,10 +1,10 @@
 """Image decoding, compositing and area resampling.
 
-Images are decoded with Pillow, composited on the background in float32 and resampled with an area
-(box) filter. Resampling is done on the composited image, which equals averaging premultiplied
-colour and alpha and compositing afterwards (compositing is linear in (alpha*rgb, alpha)); averaging
-straight (non-premultiplied) colour instead would bleed the arbitrary colour of transparent pixels
-into object edges.
+Images are decoded with Pillow (turned upright by their EXIF Orientation tag on request), composited
+on the background in float32 and resampled with an area (box) filter. Resampling is done on the
+composited image, which equals averaging premultiplied colour and alpha and compositing afterwards
+(compositing is linear in (alpha*rgb, alpha)); averaging straight (non-premultiplied) colour instead
+would bleed the arbitrary colour of transparent pixels into object edges.
 """
 
 from __future__ import annotations
@@ -17,11 +17,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageOps, UnidentifiedImageError
 
 from mnerf_jax.data.types import DataError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+EXIF_ORIENTATION = 0x0112  # the EXIF tag: 1 upright, 2-8 turned and/or mirrored
 
 # Pillow raises these for corrupt or truncated files.
 _DECODE_ERRORS = (OSError, UnidentifiedImageError, SyntaxError, ValueError, Image.DecompressionBombError)
@@ -53,6 +54,22 @@ def image_size(path: Path) -> tuple[int, int]:
         raise DataError(f"{path}: unreadable image ({_one_line(err)})") from None
 
 
+def image_header(path: Path) -> tuple[tuple[int, int], int]:
+    """((width, height) as stored, EXIF orientation 1-8) of an image file, reading only its header.
+
+    A missing or out-of-range Orientation tag reads as 1 (upright), as Pillow's ``exif_transpose`` takes it.
+    """
+    try:
+        with Image.open(path) as im:
+            tag = im.getexif().get(EXIF_ORIENTATION, 1)
+            size = (int(im.width), int(im.height))
+    except FileNotFoundError:
+        raise DataError(f"{path}: image not found") from None
+    except _DECODE_ERRORS as err:
+        raise DataError(f"{path}: unreadable image ({_one_line(err)})") from None
+    return size, tag if isinstance(tag, int) and 1 <= tag <= 8 else 1
+
+
 def scaled_size(width: int, height: int, downscale: float) -> tuple[int, int]:
     """Image size after dividing each side by ``downscale`` (rounded down, at least 1 pixel)."""
     if not downscale >= 1.0:
@@ -60,12 +77,15 @@ def scaled_size(width: int, height: int, downscale: float) -> tuple[int, int]:
     return max(1, int(width / downscale)), max(1, int(height / downscale))
 
 
-def read_image(path: Path) -> np.ndarray:
-    """Decode an image file to float32 [H, W, 3] (RGB) or [H, W, 4] (RGBA, straight alpha) in [0, 1]."""
+def read_image(path: Path, upright: bool = False) -> np.ndarray:
+    """Decode an image file to float32 [H, W, 3] (RGB) or [H, W, 4] (RGBA, straight alpha) in [0, 1].
+
+    upright: apply the file's EXIF Orientation tag (Pillow's ``exif_transpose``); else the pixels as stored.
+    """
     try:
         with Image.open(path) as im:
             im.load()
-            return _to_float(im)
+            return _to_float(ImageOps.exif_transpose(im) if upright else im)
     except FileNotFoundError:
         raise DataError(f"{path}: image not found") from None
     except _DECODE_ERRORS as err:
@@ -130,14 +150,16 @@ def load_image(
     size: tuple[int, int] | None = None,
     expect: tuple[int, int] | None = None,
     expect_from: Path | None = None,
+    upright: bool = False,
 ) -> np.ndarray:
     """Decode, composite and area-resample one image.
 
-    size:   (width, height) to resample to; None keeps the file's size
-    expect: (width, height) the file must have (all images of a split share one size)
+    size:    (width, height) to resample to; None keeps the file's size
+    expect:  (width, height) the file must have (all images of a split share one size)
+    upright: turn the image upright by its EXIF orientation first (``expect`` is then the upright size)
     Returns float32 [H, W, 3] in [0, 1].
     """
-    image = read_image(path)
+    image = read_image(path, upright)
     h, w = image.shape[:2]
     if expect is not None and (w, h) != tuple(expect):
         other = f" as {expect_from.name} is" if expect_from is not None else ""
@@ -155,19 +177,28 @@ def load_images(
     paths: Sequence[Path],
     white_bg: bool,
     size: tuple[int, int] | None = None,
-    expect: tuple[int, int] | None = None,
+    expect: tuple[int, int] | Sequence[tuple[int, int]] | None = None,
     workers: int | None = None,
+    upright: bool = False,
 ) -> np.ndarray:
-    """Load images in parallel threads (decoding releases the GIL) -> float32 [N, H, W, 3]."""
+    """Load images in parallel threads (decoding releases the GIL) -> float32 [N, H, W, 3].
+
+    expect: the (width, height) every file must have (default: the first file's), or one per file, in
+            which case ``size`` is required; upright: see :func:`load_image`.
+    """
     if not paths:
         raise DataError("no images to load")
     if expect is None:
         expect = image_size(paths[0])
+    per_file = not isinstance(expect[0], int)
+    if per_file and (len(expect) != len(paths) or size is None):
+        raise ValueError("per-file sizes need one (width, height) per path and a common output size")
     out_w, out_h = size if size is not None else expect
     out = np.empty((len(paths), out_h, out_w, 3), np.float32)
 
     def one(i: int) -> None:
-        out[i] = load_image(paths[i], white_bg, size, expect, paths[0])
+        want = expect[i] if per_file else expect
+        out[i] = load_image(paths[i], white_bg, size, want, None if per_file else paths[0], upright)
 
     workers = workers or min(8, os.cpu_count() or 1)
     if workers <= 1 or len(paths) == 1:

@@ -144,6 +144,61 @@ class SceneSplit:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
+class SceneTransform:
+    """The similarity that took a scene file's world coordinates to the scene's (a normalised capture).
+
+    A point maps as ``p_scene = scale * (rotation @ p_file + translation)``; a camera-to-world matrix
+    as ``[rotation @ R | scale * (rotation @ t + translation)]``. ``matrix`` ``[3, 4] = [rotation |
+    translation]`` and ``scale`` are what nerfstudio writes to ``dataparser_transforms.json``.
+
+    rotation:    [3, 3] float64 proper rotation
+    translation: [3] float64, in file units (applied before ``scale``)
+    scale:       world units of the scene per file unit
+    orientation, centring: the methods that made it ("up" | "pca"; "focus" | "poses" | "none")
+    """
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    scale: float
+    orientation: str
+    centring: str
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "rotation", np.asarray(self.rotation, np.float64).reshape(3, 3))
+        object.__setattr__(self, "translation", np.asarray(self.translation, np.float64).reshape(3))
+        object.__setattr__(self, "scale", float(self.scale))
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """[3, 4] ``[rotation | translation]`` (nerfstudio's ``transform``)."""
+        return np.concatenate([self.rotation, self.translation[:, None]], axis=1)
+
+    def apply(self, c2w: np.ndarray) -> np.ndarray:
+        """File camera-to-world matrices ``[..., 3, 4]`` -> the scene's (float64)."""
+        c2w = np.asarray(c2w, np.float64)
+        rot = np.einsum("ij,...jk->...ik", self.rotation, c2w[..., :3])
+        t = self.scale * (np.einsum("ij,...j->...i", self.rotation, c2w[..., 3]) + self.translation)
+        return np.concatenate([rot, t[..., None]], axis=-1)
+
+    def invert(self, c2w: np.ndarray) -> np.ndarray:
+        """Scene camera-to-world matrices ``[..., 3, 4]`` (a render path, say) -> the file's (float64)."""
+        c2w = np.asarray(c2w, np.float64)
+        back = self.rotation.T
+        rot = np.einsum("ij,...jk->...ik", back, c2w[..., :3])
+        t = np.einsum("ij,...j->...i", back, c2w[..., 3] / self.scale - self.translation)
+        return np.concatenate([rot, t[..., None]], axis=-1)
+
+    def to_dict(self) -> dict:
+        """JSON-ready: nerfstudio's ``transform`` and ``scale``, plus the methods."""
+        return {
+            "transform": self.matrix.tolist(),
+            "scale": self.scale,
+            "orientation": self.orientation,
+            "centring": self.centring,
+        }
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
 class Scene:
     """A loaded scene.
 
@@ -157,6 +212,7 @@ class Scene:
     depth_bounds: forward-facing scenes: (nearest, farthest) scene depth after rescaling, used by
                   the spiral video path
     root:         directory the scene was read from
+    transform:    the normalisation applied to a nerfstudio capture's poses (None: the file's own frame)
     """
 
     kind: str
@@ -169,6 +225,7 @@ class Scene:
     ndc_space: NDCSpace | None = None
     depth_bounds: tuple[float, float] | None = None
     root: Path | None = None
+    transform: SceneTransform | None = None
 
     def __post_init__(self) -> None:
         aabb = np.asarray(self.aabb, np.float32).reshape(2, 3)
