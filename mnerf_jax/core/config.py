@@ -29,6 +29,11 @@ class DataConfig:
     llff_factor: int = 8  # LLFF: read images_<factor>/
     llff_hold: int = 8  # LLFF / nerfstudio without split: every n-th view is a test view
     ndc: bool = False  # forward-facing scenes: NDC rays (set by the llff preset)
+    # nerfstudio captures: the poses rotated (up: mean camera up onto +z; pca: the cameras' principal axes),
+    # centred and scaled into [-1, 1]^3; auto: up, except for instant-ngp files (aabb_scale) and files with
+    # camera_angle_x only, which keep their frame; none: the file's frame
+    orientation: Literal["auto", "up", "pca", "none"] = "auto"
+    centring: Literal["focus", "poses", "none"] = "focus"  # nerfstudio captures: the origin moved here
     procedural_seed: int = 0  # built-in scene
     procedural_size: int = 64  # built-in scene: image side in pixels
     procedural_views: int = 48  # built-in scene: train views (test views = half of that)

@@ -11,7 +11,7 @@ import numpy as np
 from mnerf_jax.core.config import DataConfig, RenderConfig
 from mnerf_jax.data.blender import load_blender
 from mnerf_jax.data.llff import NDC_AABB, NDC_NEAR_FAR, load_llff
-from mnerf_jax.data.nerfstudio import load_nerfstudio
+from mnerf_jax.data.nerfstudio import CAPTURE_AABB, CAPTURE_NEAR_FAR, load_nerfstudio
 from mnerf_jax.data.procedural import procedural_scene_dir
 from mnerf_jax.data.types import DataError, Scene
 
@@ -45,8 +45,10 @@ def load_scene(
     path:       the scene directory (ignored, may be None, for the procedural scene)
     data_cfg:   format ("auto" detects it), downscale, background, LLFF factor / hold-out, NDC
     render_cfg: the scene box and near/far. None: RenderConfig's defaults, or TensoRF's NDC box
-                [-1.5, -1.67, -1]..[1.5, 1.67, 1] with near/far 0, 1 for NDC scenes. A nerfstudio /
-                instant-ngp file with ``aabb_scale`` defines its own box.
+                [-1.5, -1.67, -1]..[1.5, 1.67, 1] with near/far 0, 1 for NDC scenes, or the box
+                [-1.5, 1.5]^3 with near/far 0.05, 6 for normalised nerfstudio captures (the ``capture``
+                preset's). A nerfstudio / instant-ngp file kept in its frame with ``aabb_scale``
+                defines its own box.
     splits:     which splits to load
     max_views:  keep only the first ``max_views`` views of each split (quick looks, tests)
     """
@@ -76,15 +78,27 @@ def load_scene(
     render = render_cfg if render_cfg is not None else RenderConfig()
     aabb = np.asarray(render.aabb, np.float32).reshape(2, 3)
     near, far = render.near, render.far
-    ndc_space = depth_bounds = None
+    ndc_space = depth_bounds = transform = None
     downscale, white_bg = data_cfg.downscale, data_cfg.white_bg
 
     if kind in ("blender", "procedural"):
         loaded = load_blender(root, splits, white_bg, downscale, max_views)
     elif kind == "nerfstudio":
-        loaded, file_aabb = load_nerfstudio(root, splits, white_bg, data_cfg.llff_hold, downscale, max_views)
+        loaded, file_aabb, transform = load_nerfstudio(
+            root,
+            splits,
+            white_bg,
+            data_cfg.llff_hold,
+            downscale,
+            max_views,
+            orientation=data_cfg.orientation,
+            centring=data_cfg.centring,
+        )
         if file_aabb is not None:
             aabb = file_aabb.astype(np.float32)
+        elif transform is not None and render_cfg is None:
+            aabb = np.asarray(CAPTURE_AABB, np.float32)
+            near, far = CAPTURE_NEAR_FAR
     else:
         loaded, ndc_space, depth_bounds = load_llff(
             root,
@@ -120,4 +134,5 @@ def load_scene(
         ndc_space=ndc_space,
         depth_bounds=depth_bounds,
         root=root,
+        transform=transform,
     )
