@@ -16,7 +16,7 @@ NAME = "fit"
 HELP = "Fit a TensoRF radiance field to a scene (checkpoints, TensorBoard, test metrics in --out)."
 
 # Default preset per detected scene layout when --config is not given.
-_PRESET_FOR_LAYOUT = {"blender": "blender", "llff": "llff"}
+_PRESET_FOR_LAYOUT = {"blender": "blender", "llff": "llff", "nerfstudio": "capture"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -160,6 +160,8 @@ def fit_run(
     scene = load_scene(data, config.data, config.render, ("train", "test"))
     if not resuming:
         rundir.write_run_files(out, config, data=None if procedural else data)
+    if scene.transform is not None:
+        rundir.write_json_atomic(out / rundir.SCENE_TRANSFORM_FILE, scene.transform.to_dict())
 
     progress = Progress(out, config.train.n_iters, config.train.batch_size, config.train.log_every, quiet)
     try:

@@ -7,6 +7,8 @@ A run directory holds::
     RUN/checkpoints/    orbax checkpoints (``checkpoint.CheckpointStore``)
     RUN/metrics.json    written by ``mnerf fit`` at the end
     RUN/tb/             TensorBoard scalars
+    RUN/scene_transform.json  a normalised capture's transform from the file's frame to the scene's
+                        (nerfstudio's ``transform`` [3, 4] and ``scale``; ``data.SceneTransform``)
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from mnerf_jax.core.errors import MnerfError
 
 RUN_MARKER = "run.json"
 CONFIG_FILE = "config.json"
+SCENE_TRANSFORM_FILE = "scene_transform.json"
 RUN_FORMAT_VERSION = 1
 TENSORF_KIND = "tensorf"
 WATERMARK_KIND = "multinerf"
