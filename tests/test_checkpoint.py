@@ -98,3 +98,15 @@ def test_runs_written_under_an_older_digest_still_load(tmp_path):
     assert rundir.prepare_output(tmp_path / "r", config, resume=True)
     with pytest.raises(rundir.RunError, match="train.n_iters"):
         rundir.prepare_output(tmp_path / "r", load_config("procedural", ["train.n_iters=999"]), resume=True)
+
+
+def test_runs_written_before_a_field_was_added_still_load(tmp_path):
+    """A saved config without a field added since (here the data section's orientation and centring) reads
+    the field at its default; a real difference is still refused."""
+    config = load_config("procedural")
+    saved = config.to_dict()
+    del saved["data"]["orientation"], saved["data"]["centring"]
+    meta = {"fingerprint": "0123456789abcdef", "config": saved}
+    check_compatible(meta, config, tmp_path)
+    with pytest.raises(CheckpointError, match="data.orientation: auto -> pca"):
+        check_compatible(meta, load_config("procedural", ["data.orientation=pca"]), tmp_path)

@@ -26,7 +26,7 @@ import flax.serialization
 import jax
 import orbax.checkpoint as ocp
 
-from mnerf_jax.core.config import Config
+from mnerf_jax.core.config import Config, ConfigError, from_dict
 from mnerf_jax.core.errors import MnerfError
 
 CHECKPOINT_SUBDIR = "checkpoints"
@@ -91,8 +91,13 @@ def fingerprint_differences(
 ) -> list[str]:
     """``config_differences`` between a saved config dict and ``config`` over the fingerprinted fields.
 
-    Empty when they agree, even if the saved run's digest was computed under older fingerprint rules.
+    Empty when they agree, even if the saved run's digest was computed under older fingerprint rules, or
+    before a field was added (the saved config is read as any config, a field it lacks at its default).
     """
+    try:
+        saved = from_dict(saved).to_dict()
+    except (ConfigError, TypeError, ValueError):
+        saved = dict(saved)  # compared as written: the differences name what no longer reads
     return config_differences(_without_bookkeeping(saved, sections), fingerprint_fields(config, sections))
 
 
