@@ -80,7 +80,8 @@ def _key(file_path: str) -> str:
 
 
 def frame_intrinsics(meta: dict, frame: dict, where: str, image_wh: tuple[int, int]) -> tuple:
-    """(fx, fy, cx, cy, (k1, k2, p1, p2), (w, h)) of one frame at its file's resolution."""
+    """(fx, fy, cx, cy, (k1, k2, p1, p2), (w, h)) of one frame, in pixels of the size (w, h) its
+    intrinsics state (``image_wh`` where they state none)."""
     merged = {k: meta[k] for k in INTRINSIC_KEYS if k in meta}
     merged.update({k: frame[k] for k in INTRINSIC_KEYS if k in frame})
     model = merged.get("camera_model")
