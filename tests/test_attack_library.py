@@ -350,6 +350,23 @@ def test_bad_regen_specs_are_refused_in_one_line(spec, message) -> None:
     assert "\n" not in str(err.value)
 
 
+def test_a_hook_file_may_define_dataclasses(tmp_path) -> None:
+    path = tmp_path / "withclass.py"
+    path.write_text(
+        "import dataclasses\n@dataclasses.dataclass\nclass Model:\n    scale: int = 1\n"
+        "def regen(images):\n    return images[:, :: Model().scale]\n"
+    )
+    x = _images()
+    np.testing.assert_array_equal(S.hook_attack(f"{path}:regen")(x, 0), x)
+
+
+def test_the_command_lists_the_suites_and_needs_a_run(mnerf) -> None:
+    code, out, _ = mnerf("attack", "--list")
+    assert code == 0 and "peers (9 attacks)" in out and "jpeg90" in out
+    code, _, err = mnerf("attack")
+    assert code == 2 and "--run" in err
+
+
 def test_an_importable_module_is_a_hook_too() -> None:
     attack = S.hook_attack("numpy:ascontiguousarray")
     x = _images()

@@ -20,6 +20,7 @@ import dataclasses
 import importlib
 import importlib.util
 import itertools
+import sys
 import zlib
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -402,8 +403,11 @@ def load_hook(spec: str) -> Callable[[np.ndarray], Any]:
             if not path.is_file():
                 raise AttackError(f"--regen {spec}: {path} does not exist")
             loader_spec = importlib.util.spec_from_file_location(f"mnerf_regen_{path.stem}", path)
-            assert loader_spec is not None and loader_spec.loader is not None
+            if loader_spec is None or loader_spec.loader is None:
+                raise AttackError(f"--regen {spec}: {path} cannot be loaded as a Python module")
             module = importlib.util.module_from_spec(loader_spec)
+            # Registered as imported modules are: dataclasses and pickling in it look their module up.
+            sys.modules[loader_spec.name] = module
             loader_spec.loader.exec_module(module)
         else:
             module = importlib.import_module(module_name)
