@@ -247,3 +247,76 @@ def test_attacks_need_an_evaluation(tiny, mnerf) -> None:
     assert code == 2 and "mnerf evaluate" in err and "eval-val.json" in err
     code, _, err = mnerf("attack", "--run", tiny.wm, "--attacks", "sepia", "--quiet")
     assert code == 2 and "sepia" in err
+
+
+def test_evaluate_saves_the_clean_renders(tiny_eval) -> None:
+    from mnerf_jax.data.images import round_to_8bit
+    from mnerf_jax.reader import extract
+
+    runs, result = tiny_eval
+    folder = runs.wm / "eval-test" / V.CLEAN_FOLDER
+    assert sorted(p.stem for p in folder.glob("*.png")) == sorted(result["view_names"])
+    first = extract.load_image(folder / f"{result['view_names'][0]}.png")
+    np.testing.assert_array_equal(first, round_to_8bit(result["_clean"][0]))
+
+
+def test_attack_suite_peers_end_to_end(tiny_eval, mnerf) -> None:
+    from mnerf_jax.imaging import attack_suites
+
+    runs, _ = tiny_eval
+    code, out, err = mnerf("attack", "--run", runs.wm, "--suite", "peers", "--views", "2", "--quiet")
+    assert code == 0, err
+    path = runs.wm / "eval-test-attacks-peers.json"
+    result = json.loads(path.read_text())
+    assert result["suite"] == "peers" and result["views"] == 2 and result["num_ids"] == 2
+    assert result["order"] == ["none", *attack_suites.SUITES["peers"]]
+    # False claims: the clean model's renders of the same views under the same attacks.
+    assert result["false_claims_measured"]
+    for name in result["order"]:
+        row = result["attacks"][name]
+        assert 0.0 <= row["bit_accuracy_min"] <= row["bit_accuracy_mean"] <= 1.0
+        assert 0.0 <= row["verified_identification_accuracy"] <= row["identification_accuracy"] <= 1.0
+        assert 0.0 <= row["false_claim_rate"] <= 1.0 and len(row["claimed_per_id"]) == 2
+        assert sum(row["claimed_per_id"]) == round(row["false_claim_rate"] * 2)
+    assert result["attacks"]["crop_random40"]["family"] == "geometric"
+    header = out.splitlines()[0]
+    assert "suite peers" in header and "false claims" in header
+    assert "crop_random40+brightness2+jpeg10" in out and "mean of attacks" in out
+    assert path.with_suffix(".png").is_file()
+
+
+REGEN_HOOK = """
+import numpy as np
+def mirror(images):
+    assert images.dtype == np.uint8 and images.ndim == 4
+    return images[:, :, ::-1].copy()
+def floats(images):
+    return images / 255.0
+"""
+
+
+def test_attack_regen_hook_without_clean_renders_loses_nothing(tiny_eval, mnerf, tmp_path) -> None:
+    import shutil
+
+    runs, _ = tiny_eval
+    run = tmp_path / "wm"
+    shutil.copytree(runs.wm, run, ignore=shutil.ignore_patterns("checkpoints", "tb", "eval-test-attacks*"))
+    shutil.rmtree(run / "eval-test" / V.CLEAN_FOLDER)  # as an evaluation written before they were saved
+    hook = tmp_path / "hook.py"
+    hook.write_text(REGEN_HOOK)
+    args = ("attack", "--run", run, "--attacks", "jpeg90", "--views", "2", "--quiet")
+    code, out, err = mnerf(*args, "--regen", f"{hook}:mirror")
+    assert code == 0, err
+    path = run / "eval-test-attacks.json"
+    result = json.loads(path.read_text())
+    assert result["order"] == ["none", "jpeg90", "regen:hook.py:mirror"]
+    assert not result["false_claims_measured"] and "false_claim_rate" not in result["attacks"]["jpeg90"]
+    assert "false claims" not in out.splitlines()[0]
+    assert sum("false claims left out" in line for line in out.splitlines()) == 1
+    # A hook that returns floats is refused in one line, and the scores already written stay as they were.
+    before = path.read_bytes()
+    code, _, err = mnerf(*args, "--regen", f"{hook}:floats")
+    assert code == 2 and "uint8" in err and len(err.strip().splitlines()) == 1
+    assert path.read_bytes() == before
+    code, _, err = mnerf(*args, "--suite", "peers")
+    assert code == 2 and "give one" in err

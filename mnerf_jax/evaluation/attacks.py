@@ -1,23 +1,24 @@
-"""Robustness of a watermarked run: bit accuracy and identification of its evaluated renders under attack.
+"""Robustness of a watermarked run: bit accuracy, identification and false claims of its evaluated renders
+under attack (``mnerf attack``).
 
 ``mnerf evaluate`` saves every ID's render of every evaluated view as an 8-bit PNG
-(``WMRUN/eval-<split>/id<K>/<view>.png``). This module reads those files back, applies each of the 14
-augmentations of :mod:`mnerf_jax.imaging.augment` alone at one strength (Low / Medium / High, the paper's
-policies; their random parameters drawn per image from a fixed seed), rounds the attacked images to 8 bits
-again (what a verifier receives), decodes them with the run's decoder (and its read window) and scores them as
-evaluation scores the renders themselves: mean and worst-ID bit accuracy, best-matching key right, and named
-(the run's test and threshold). ``"none"`` is the PNGs as saved, the row ``eval-<split>.json`` reports as
-``bit_accuracy_png_mean``. Writes ``WMRUN/eval-<split>-attacks.json``.
+(``WMRUN/eval-<split>/id<K>/<view>.png``) and the clean model's render of each (``eval-<split>/clean/``).
+This module reads those files back, applies each attack of :mod:`mnerf_jax.imaging.attack_suites` (a suite,
+or attacks named one by one; each attack's output is 8-bit, what a verifier receives), decodes the results
+with the run's decoder (and its read window, which finds the object in an image of any size) and scores them
+as evaluation scores the renders: mean and worst-ID bit accuracy, best-matching key right, and named (the
+run's test and threshold). The clean renders meet the same attack (the same seed: the same parameters per
+view) and are scored for false claims: the share of them the decision names as some key. ``"none"`` is the
+PNGs as saved, the row ``eval-<split>.json`` reports as ``bit_accuracy_png_mean``.
 
 Reading saved files rather than rendering again keeps this cheap (no field is loaded) and scores exactly the
-images the evaluation scored. The clean model's renders are not saved, so false detections under attack are
-not measured here.
+images the evaluation scored.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -26,22 +27,48 @@ from tqdm import tqdm
 
 from mnerf_jax.core import rundir
 from mnerf_jax.core.errors import MnerfError
-from mnerf_jax.data.images import round_to_8bit
+from mnerf_jax.data.images import to_uint8
 from mnerf_jax.evaluation import watermarked as wm_eval
-from mnerf_jax.evaluation.plots import plt
-from mnerf_jax.imaging import augment
+from mnerf_jax.imaging import attack_suites, augment
+from mnerf_jax.imaging.attack_suites import Attack
 from mnerf_jax.reader import extract, significance
-from mnerf_jax.reader.identification import bit_accuracy, identify_logits, logits_to_bits
+from mnerf_jax.reader.identification import (
+    bit_accuracy,
+    false_detection_summary,
+    identify_logits,
+    logits_to_bits,
+)
 from mnerf_jax.tensorf import run as runs
 from mnerf_jax.watermark import run as wm_run
 
 NO_ATTACK = "none"
+CLEAN_FOLDER = wm_eval.CLEAN_FOLDER
+MEANS = (
+    "bit_accuracy_mean",
+    "bit_accuracy_min",
+    "identification_accuracy",
+    "verified_identification_accuracy",
+    "false_claim_rate",
+)
 
 
-def saved_renders(run_dir: Path, split: str, views: int | None = None) -> tuple[dict[str, Any], np.ndarray]:
-    """``(eval-<split>.json, renders [N, V, H, W, 3] float32)``: every ID's saved PNGs of the evaluated
-    views, ``views`` of them evenly spread (None or 0: all). A clear error where the evaluation, or one of
-    its files, is missing."""
+def attacks_path(run_dir: str | Path, split: str, suite: str | None = None) -> Path:
+    """Where the scores go: ``eval-<split>-attacks-<suite>.json``, or ``eval-<split>-attacks.json`` for
+    attacks named one by one (and the 14 augmentations at one strength, the default)."""
+    return Path(run_dir) / (f"eval-{split}-attacks-{suite}.json" if suite else f"eval-{split}-attacks.json")
+
+
+def _load_pngs(files: Sequence[Path]) -> np.ndarray:
+    """uint8 ``[V, H, W, 3]`` of 8-bit PNG files (exact: ``to_uint8`` undoes ``load_image``'s /255)."""
+    return np.stack([to_uint8(extract.load_image(f)) for f in files])
+
+
+def saved_renders(
+    run_dir: Path, split: str, views: int | None = None
+) -> tuple[dict[str, Any], list[str], np.ndarray]:
+    """``(eval-<split>.json, view names, renders uint8 [N, V, H, W, 3])``: every ID's saved PNGs of the
+    evaluated views, ``views`` of them evenly spread (None or 0: all). A clear error where the evaluation,
+    or one of its files, is missing."""
 
     path = run_dir / f"eval-{split}.json"
     if not path.is_file():
@@ -67,16 +94,15 @@ def saved_renders(run_dir: Path, split: str, views: int | None = None) -> tuple[
                 f"{len(missing)} saved render(s) of ID {n} are missing (first: {missing[0]}); "
                 f"run `mnerf evaluate --run {run_dir} --split {split}` again"
             )
-        renders.append(np.stack([extract.load_image(f) for f in files]))
-    return result, np.stack(renders)
+        renders.append(_load_pngs(files))
+    return result, chosen, np.stack(renders)
 
 
-def attack(name: str, key: Any, images: np.ndarray, strength: str) -> np.ndarray:
-    """``images [B, H, W, 3]`` after augmentation ``name`` (``"none"``: unchanged) at ``strength``."""
-
-    if name == NO_ATTACK:
-        return images
-    return np.asarray(augment.AUGMENTATIONS[name](key, images, strength))
+def saved_clean(run_dir: Path, split: str, names: Sequence[str]) -> np.ndarray | None:
+    """The clean model's saved renders uint8 ``[V, H, W, 3]`` of the views ``names``, or None when any is
+    missing (an evaluation written before they were saved, or a run whose source run is gone)."""
+    files = [run_dir / f"eval-{split}" / CLEAN_FOLDER / f"{name}.png" for name in names]
+    return _load_pngs(files) if all(f.is_file() for f in files) else None
 
 
 def score(logits: np.ndarray, messages: np.ndarray, threshold: float, test: str) -> dict[str, Any]:
@@ -96,149 +122,145 @@ def score(logits: np.ndarray, messages: np.ndarray, threshold: float, test: str)
     }
 
 
+def false_claims(logits: np.ndarray, messages: np.ndarray, threshold: float, test: str) -> dict[str, Any]:
+    """How the decision names the clean model's attacked renders ``logits [V, L]``: ``false_claim_rate``
+    (named as any key under ``test``; ``..._by_test``) and ``claimed_per_id [N]``."""
+    summary = false_detection_summary(identify_logits(logits, messages, threshold, test), len(messages))
+    return {
+        "false_claim_rate": summary["false_detection_rate"],
+        "false_claim_rate_by_test": summary["false_detection_rate_by_test"],
+        "claimed_per_id": summary["claimed_per_id"],
+    }
+
+
+def choose_attacks(
+    suite: str | None = None,
+    names: Sequence[str] | None = None,
+    strength: str | None = None,
+    regen: str | None = None,
+) -> tuple[list[Attack], str | None]:
+    """``(attacks, suite label)`` to run, checked before any work: a ``suite``; or ``names``
+    (:func:`attack_suites.resolve`: registry names, or augmentation names at ``strength``); or, with
+    neither, the 14 augmentations at ``strength`` (default low; the command's old default). ``regen``
+    (``module:function``) adds that hook's row, to the ``regen`` suite's stand-ins when nothing else is
+    chosen. The label names the output file (None: ``eval-<split>-attacks.json``)."""
+    if suite and names:
+        raise MnerfError("--suite and --attacks choose the attacks two ways: give one")
+    if suite and strength:
+        raise MnerfError(
+            "--strength sets the 14 augmentations' strength without --suite (paper has all three)"
+        )
+    if strength and strength not in augment.STRENGTHS:
+        raise MnerfError(f"unknown attack strength {strength!r} (known: {', '.join(augment.STRENGTHS)})")
+    hook = [attack_suites.hook_attack(regen)] if regen else []
+    if suite:
+        return attack_suites.suite(suite) + hook, suite
+    if names:
+        return attack_suites.resolve(names, strength or "low") + hook, None
+    if hook:
+        return attack_suites.suite("regen") + hook, "regen"
+    return attack_suites.resolve(augment.AUGMENTATION_NAMES, strength or "low"), None
+
+
+def _decode(decoder: Any, wm: Any, images: np.ndarray) -> np.ndarray:
+    """Logits ``[B, L]`` of uint8 images ``[B, H, W, 3]`` as the run's decoder reads them."""
+    return wm_eval.decode_renders(decoder, wm, images.astype(np.float32) / np.float32(255.0), batch=32)
+
+
 def evaluate_attacks(
     run_dir: str | Path,
     split: str = "test",
-    strength: str = "low",
+    strength: str | None = None,
     names: Sequence[str] | None = None,
     views: int | None = None,
     seed: int = 0,
     progress: bool = False,
+    *,
+    suite: str | None = None,
+    regen: str | None = None,
 ) -> dict[str, Any]:
-    """Score a watermarked run's saved evaluation PNGs under each attack; writes and returns
-    ``run_dir/eval-<split>-attacks.json``.
+    """Score a watermarked run's saved evaluation PNGs under each attack (:func:`choose_attacks`); writes
+    and returns :func:`attacks_path`'s JSON. ``"none"`` is always scored first; a hook's row runs next, so
+    a hook that fails fails before the rest; nothing is written unless every row is scored.
 
-    ``names``: augmentations to apply (default all 14), each alone; ``"none"`` is always scored first.
-    ``views``: evenly spread views of the evaluation's (None or 0: all). An attack draws its parameters from
-    ``fold_in(PRNGKey(seed), its index in augment.AUGMENTATION_NAMES)``, the same for every ID (so the IDs
-    meet the same attacks) and whichever other attacks are asked for.
-    Keys: ``split``, ``strength``, ``views``, ``num_ids``, ``bits``, ``seed``, ``test``, ``threshold``,
-    ``attacks`` ``{name: score(...)}`` in order, and ``mean_over_attacks`` (the 14 attacks' mean of each
-    score, "none" left out).
+    ``views``: evenly spread views of the evaluation's (None or 0: all). Every attack draws from ``seed``
+    (:mod:`imaging.attack_suites`), the same for every ID and for the clean renders.
+    Keys: ``split``, ``suite``, ``strength`` (the augmentations' strength without a suite), ``named``
+    (attacks named one by one), ``views``, ``view_names``,
+    ``num_ids``, ``bits``, ``seed``, ``test``, ``threshold``, ``step``, ``order`` (the rows in order),
+    ``attacks`` ``{name: score(...) + family, description, and with the clean renders false_claims(...)}``,
+    ``skipped`` ``{name: why}`` (attacks that cannot run here, such as WebP without libwebp),
+    ``false_claims_measured`` and ``mean_over_attacks`` (each score's mean over the attacks, "none" left out).
     """
-    import jax
-
     run_dir = Path(run_dir)
-    if strength not in augment.STRENGTHS:
-        raise MnerfError(f"unknown attack strength {strength!r} (known: {', '.join(augment.STRENGTHS)})")
-    names = augment.resolve_names(names or None, 1)
+    attacks, label = choose_attacks(suite, names, strength, regen)
     keys, decoder = wm_run.load_keys_and_decoder(run_dir)
     saved = rundir.read_run_config(run_dir).watermark
     threshold = float(saved.reading.id_threshold)
     test = significance.check_test(saved.reading.id_test)
-    evaluation, renders = saved_renders(run_dir, split, views)
+    evaluation, chosen, renders = saved_renders(run_dir, split, views)
+    clean = saved_clean(run_dir, split, chosen)
     messages = np.asarray(keys.messages, np.float32)
     if renders.shape[0] != messages.shape[0]:
         raise MnerfError(
             f"{run_dir}'s evaluation has {renders.shape[0]} IDs but its keys.json {messages.shape[0]}"
         )
     n, v = renders.shape[:2]
-    base = jax.random.PRNGKey(seed)
-    order = [NO_ATTACK, *names]
+    skipped = {a.name: a.unavailable for a in attacks if a.unavailable}
+    runnable = [a for a in attacks if not a.unavailable]
+    # A user's hook first: a failing model fails before the rest is spent.
+    todo = sorted(runnable, key=lambda a: a.family != "hook")
     bar = None
     if progress:
-        bar = tqdm(total=len(order), unit="attack", desc=f"attacks ({strength})", dynamic_ncols=True)
-    scores: dict[str, Any] = {}
+        bar = tqdm(
+            total=len(todo) + 1, unit="attack", desc=f"attacks ({label or 'named'})", dynamic_ncols=True
+        )
+    rows: dict[str, Any] = {}
     try:
-        for name in order:
-            # Keyed by the attack's place in the registry: the same draws whichever others are chosen.
-            place = augment.AUGMENTATION_NAMES.index(name) if name != NO_ATTACK else 0
-            key = jax.random.fold_in(base, place)
-            # One ID at a time: the median filter's window stack is k² times the batch.
-            attacked = np.concatenate([attack(name, key, renders[k], strength) for k in range(n)])
-            attacked = round_to_8bit(attacked)  # a verifier gets 8 bits
-            logits = wm_eval.decode_renders(decoder, saved, attacked, batch=32)
-            scores[name] = score(logits.reshape(n, v, -1), messages, threshold, test)
+        for attack in [None, *todo]:
+            name = NO_ATTACK if attack is None else attack.name
+            # One ID at a time (the augmentations' median filter stacks k² copies of its batch); the same
+            # seed for each, so every ID meets the same parameters per view.
+            hit = [renders[k] if attack is None else attack(renders[k], seed) for k in range(n)]
+            logits = _decode(decoder, saved, np.concatenate(hit))
+            row = score(logits.reshape(n, v, -1), messages, threshold, test)
+            if attack is not None:
+                row.update(family=attack.family, description=attack.description)
+            if clean is not None:
+                hit_clean = clean if attack is None else attack(clean, seed)
+                row.update(false_claims(_decode(decoder, saved, hit_clean), messages, threshold, test))
+            rows[name] = row
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(attack=name, bits=f"{scores[name]['bit_accuracy_mean']:.3f}")
+                bar.set_postfix(attack=name, bits=f"{row['bit_accuracy_mean']:.3f}")
     finally:
         if bar is not None:
             bar.close()
-    attacked_only = [s for name, s in scores.items() if name != NO_ATTACK]
+    order = [NO_ATTACK, *(a.name for a in runnable)]
+    rows = {name: rows[name] for name in order}  # the hook back in its place
+    attacked = [rows[name] for name in order[1:]]
     result = {
         "split": split,
-        "strength": strength,
+        "suite": label,
+        "strength": None if label else (strength or "low"),
+        "named": bool(names) and not label,
         "views": v,
+        "view_names": chosen,
         "num_ids": n,
         "bits": int(messages.shape[1]),
         "seed": seed,
         "test": test,
         "threshold": threshold,
         "step": evaluation.get("step"),
-        "attacks": scores,
+        "order": order,
+        "attacks": rows,
+        "skipped": skipped,
+        "false_claims_measured": clean is not None,
         "mean_over_attacks": {
-            k: float(np.mean([s[k] for s in attacked_only]))
-            for k in (
-                "bit_accuracy_mean",
-                "bit_accuracy_min",
-                "identification_accuracy",
-                "verified_identification_accuracy",
-            )
+            k: float(np.mean([s[k] for s in attacked])) for k in MEANS if k in rows[NO_ATTACK]
         }
-        if attacked_only
+        if attacked
         else None,
     }
-    rundir.write_json_atomic(run_dir / f"eval-{split}-attacks.json", result)
+    rundir.write_json_atomic(attacks_path(run_dir, split, label), result)
     return result
-
-
-def attack_order(result: Mapping[str, Any]) -> list[str]:
-    """The attacks of ``result`` in the order of :data:`augment.AUGMENTATION_NAMES`, ``"none"`` first (the
-    JSON file keeps its keys sorted)."""
-
-    rank = {name: i for i, name in enumerate((NO_ATTACK, *augment.AUGMENTATION_NAMES))}
-    return sorted(result["attacks"], key=lambda name: rank.get(name, len(rank)))
-
-
-def format_table(result: Mapping[str, Any]) -> str:
-    """The attacks as a text table: bits mean / worst ID, best match, named."""
-    lines = [
-        f"{'attack (' + result['strength'] + ')':<16} {'bits':>8} {'worst ID':>9} {'best match':>11} "
-        f"{'named':>8}"
-    ]
-    rows = [(name, result["attacks"][name]) for name in attack_order(result)]
-    if result.get("mean_over_attacks"):
-        rows.append(("mean of attacks", result["mean_over_attacks"]))
-    for name, s in rows:
-        named = s["verified_identification_accuracy"]
-        lines.append(
-            f"{name:<16} {s['bit_accuracy_mean']:>8.2%} {s['bit_accuracy_min']:>9.2%} "
-            f"{s['identification_accuracy']:>11.2%} {named:>8.2%}"
-        )
-    return "\n".join(lines)
-
-
-def attacks_plot(path: Path, results: Mapping[str, Mapping[str, Any]]) -> Path:
-    """Bar plot of bit accuracy per attack, with the 50 % chance line: for one run (``{label: result}``) the
-    mean over IDs and the worst ID, for several each run's mean over IDs side by side (the attacks of the
-    first run, in :func:`attack_order`)."""
-
-    first = next(iter(results.values()))
-    names = attack_order(first)
-    if len(results) == 1:
-        bars = {
-            "mean over IDs": [first["attacks"][k]["bit_accuracy_mean"] for k in names],
-            "worst ID": [first["attacks"][k]["bit_accuracy_min"] for k in names],
-        }
-    else:
-        bars = {
-            label: [r["attacks"].get(k, {}).get("bit_accuracy_mean", np.nan) for k in names]
-            for label, r in results.items()
-        }
-    x = np.arange(len(names))
-    width = 0.8 / len(bars)
-    fig, ax = plt.subplots(figsize=(0.55 * len(names) + 5.0, 3.6))
-    for j, (label, values) in enumerate(bars.items()):
-        ax.bar(x - 0.4 + width * (j + 0.5), np.asarray(values, float) * 100, width=width, label=label)
-    ax.axhline(50.0, color="grey", linestyle="--", linewidth=1, label="chance")
-    ax.set_xticks(x, names, rotation=45, ha="right", fontsize=8)
-    ax.set_ylabel("bit accuracy (%)")
-    ax.set_ylim(0, 100)
-    title = f"{first['num_ids']} IDs x {first['views']} views, {first['strength']} attacks"
-    ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

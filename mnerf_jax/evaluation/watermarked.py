@@ -31,6 +31,9 @@ from mnerf_jax.reader.identification import (
 from mnerf_jax.tensorf import run as runs
 from mnerf_jax.watermark import run as wm_run
 
+# The clean model's renders of the evaluated views, beside each ID's: WMRUN/eval-<split>/clean/<view>.png.
+CLEAN_FOLDER = "clean"
+
 # ------------------------------------------------------------------------------------------- evaluation
 
 
@@ -52,11 +55,16 @@ def with_read_jitter(wm: Any, read_jitter: int | None) -> Any:
     return dataclasses.replace(wm, reading=reading)
 
 
+def _save_png(path: Path, image: np.ndarray) -> None:
+    """Write float ``image [H, W, 3]`` in [0, 1] as an 8-bit PNG."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(path, to_uint8(image))
+
+
 def _save_and_reload_png(path: Path, image: np.ndarray) -> np.ndarray:
     """Write an 8-bit PNG and read it back as float32 ``[H, W, 3]`` (what a viewer of the render gets)."""
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, to_uint8(image))
+    _save_png(path, image)
     return extract.load_image(path)
 
 
@@ -85,7 +93,8 @@ def evaluate_watermarked_run(
     For every evaluated view and every ID (up to ``wm_run.IDS_PER_RENDER`` IDs from one geometry pass): render
     (float, unclamped by nothing but the renderer's [0, 1]),
     decode, and again after a round trip through an 8-bit PNG (``run_dir/eval-<split>/id<K>/<view>.png``).
-    The clean (pre-watermark) model of ``--from`` renders the same views: quality is reported against the
+    The clean (pre-watermark) model of ``--from`` renders the same views (saved as 8-bit PNGs too, in
+    ``eval-<split>/clean/``, for ``mnerf attack``'s false claims): quality is reported against the
     ground truth and against those clean renders, and the clean renders' bit accuracy against every key
     (chance: 50 %) and false-detection rate show what an unwatermarked image decodes to.
 
@@ -133,6 +142,10 @@ def evaluate_watermarked_run(
             bar.close()
 
     png_dir = run_dir / f"eval-{split}"
+    if save_pngs and clean is not None:
+        # The clean model's renders too: `mnerf attack` measures false claims on them under each attack.
+        for name, img in zip(names, clean, strict=True):
+            _save_png(png_dir / CLEAN_FOLDER / f"{name}.png", img)
     per_id, true_ids, decoded, decoded_png, all_renders = [], [], [], [], []
     for n in range(n_ids):
         logits = decode_renders(decoder, wm, renders[n])
