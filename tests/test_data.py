@@ -25,6 +25,7 @@ from mnerf_jax.data import (
     procedural_scene_dir,
     ray_aabb_hit,
     undistort,
+    view_indices,
     world_rays,
     write_procedural_scene,
 )
@@ -94,8 +95,11 @@ def test_lego_images_cameras_match_files(lego, lego_dir):
     assert train.images.shape == (LEGO_VIEWS, size, size, 3)
     assert train.images.dtype == np.float32
     assert 0.0 <= train.images.min() and train.images.max() <= 1.0
-    assert train.names == [Path(f["file_path"]).name for f in meta["frames"][:LEGO_VIEWS]]
-    expected_c2w = np.array([f["transform_matrix"] for f in meta["frames"][:LEGO_VIEWS]])[:, :3]
+    # max_views keeps evenly spread views, the first and the last included.
+    frames = [meta["frames"][i] for i in view_indices(len(meta["frames"]), LEGO_VIEWS)]
+    assert train.names[0] == "r_0" and train.names[-1] == Path(meta["frames"][-1]["file_path"]).name
+    assert train.names == [Path(f["file_path"]).name for f in frames]
+    expected_c2w = np.array([f["transform_matrix"] for f in frames])[:, :3]
     np.testing.assert_allclose(train.cameras.c2w, expected_c2w, atol=1e-6)
     focal = 0.5 * size / math.tan(0.5 * meta["camera_angle_x"])
     np.testing.assert_allclose(train.cameras.fx, focal, rtol=1e-6)
@@ -122,6 +126,17 @@ def test_lego_downscale_is_area_average_of_composite(lego, lego_dir):
     blocks = lambda a: a.reshape(800 // f, f, 800 // f, f, -1).mean(axis=(1, 3))  # noqa: E731
     straight = blocks(rgb) * blocks(alpha) + (1.0 - blocks(alpha))
     assert np.abs(straight - expected).max() > 0.02
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 200])
+def test_view_indices_spread_limit_views_from_first_to_last(n: int) -> None:
+    for limit in range(1, n + 3):
+        chosen = view_indices(n, limit)
+        assert chosen == sorted(set(chosen)) and len(chosen) == min(limit, n)
+        assert chosen[0] == 0 and (chosen[-1] == n - 1 or limit == 1)
+        gaps = np.diff(chosen)
+        assert gaps.size == 0 or gaps.max() - gaps.min() <= 1  # evenly spread
+    assert view_indices(n, None) == view_indices(n, 0) == list(range(n))
 
 
 def test_lego_black_background(lego_dir):

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from mnerf_jax.core import rundir
+from mnerf_jax.data import view_indices
 from mnerf_jax.watermark import run as wm_run
 
 NAME = "evaluate"
@@ -57,8 +58,8 @@ def run(args: argparse.Namespace) -> int:
     if marker is not None and marker.get("kind") == rundir.WATERMARK_KIND:
         return evaluate_watermarked(args)
     loaded = wm_run.load_run(args.run)
-    split = loaded.load_scene(args.data, splits=(args.split,)).split(args.split)
-    n = len(runs.view_indices(len(split), args.views))
+    split = loaded.load_scene(args.data, splits=(args.split,), max_views=args.views).split(args.split)
+    n = len(view_indices(len(split), args.views))
     bar = None
     if not args.quiet:
         from tqdm import tqdm

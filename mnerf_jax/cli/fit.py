@@ -10,6 +10,7 @@ from typing import Any
 
 from mnerf_jax.cli.process import prepare_process
 from mnerf_jax.core import rundir
+from mnerf_jax.data import view_indices
 from mnerf_jax.watermark import run as wm_run
 
 NAME = "fit"
@@ -192,9 +193,9 @@ def evaluate_test(run_dir: Path, max_views: int, quiet: bool = False) -> dict[st
     from mnerf_jax.tensorf import run as runs
 
     loaded = wm_run.load_run(run_dir)
-    scene = loaded.load_scene(splits=("test",))
+    scene = loaded.load_scene(splits=("test",), max_views=max_views)
     split = scene.split("test")
-    n = len(runs.view_indices(len(split), max_views))
+    n = len(view_indices(len(split), max_views))
     bar = None
     if not quiet:
         from tqdm import tqdm

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from mnerf_jax.core import rundir
+from mnerf_jax.data import view_indices
 from mnerf_jax.watermark import run as wm_run
 
 NAME = "render"
@@ -113,9 +114,9 @@ def render_to(
         video = f"path.{video_format}"
         targets = [*names, video]
     else:
-        split = run.load_scene(data, splits=(split_name,)).split(split_name)
+        split = run.load_scene(data, splits=(split_name,), max_views=views).split(split_name)
         cameras = split.cameras
-        indices = runs.view_indices(len(split), views)
+        indices = view_indices(len(split), views)
         names = [f"{split.names[i]}.png" for i in indices]
         video, targets = None, names
     check_targets(out, targets, overwrite)

@@ -27,6 +27,7 @@ from mnerf_jax.data.types import (
     Scene,
     SceneSplit,
     SceneTransform,
+    view_indices,
 )
 
 __all__ = [
@@ -44,6 +45,7 @@ __all__ = [
     "detect_dataset",
     "distort",
     "load_scene",
+    "view_indices",
     "ndc_rays",
     "pixel_directions",
     "procedural_scene_dir",

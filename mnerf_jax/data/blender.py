@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from mnerf_jax.data.images import image_size, load_images, read_json, resolve_image, scaled_size
-from mnerf_jax.data.types import Cameras, DataError, SceneSplit
+from mnerf_jax.data.types import Cameras, DataError, SceneSplit, view_indices
 
 
 def parse_matrix(value: Any, where: str) -> np.ndarray:
@@ -84,7 +84,7 @@ def load_blender_split(
     """Load ``root/transforms_<split>.json`` and its images.
 
     downscale: image sides are divided by this (area resampling); intrinsics follow.
-    max_views: keep only the first ``max_views`` frames.
+    max_views: keep only ``max_views`` evenly spread frames (``types.view_indices``).
     """
     json_path = root / f"transforms_{split}.json"
     if not json_path.is_file():
@@ -92,7 +92,7 @@ def load_blender_split(
     meta = read_json(json_path)
     frames = frame_list(meta, json_path)
     if max_views is not None:
-        frames = frames[: max(1, max_views)]
+        frames = [frames[i] for i in view_indices(len(frames), max(1, max_views))]
     paths: list[Path] = []
     c2w = []
     for i, frame in enumerate(frames):

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from mnerf_jax.data.images import image_size, list_images, load_images, scaled_size
-from mnerf_jax.data.types import Cameras, DataError, NDCSpace, SceneSplit
+from mnerf_jax.data.types import Cameras, DataError, NDCSpace, SceneSplit, view_indices
 
 NEAR_SCALE = 0.75  # nearest depth ends at 1 / 0.75 after rescaling
 NDC_AABB = ((-1.5, -1.67, -1.0), (1.5, 1.67, 1.0))  # TensoRF's LLFF box in NDC
@@ -143,7 +143,7 @@ def load_llff(
         if idx.size == 0:
             raise DataError(f"{root}: the {name} split is empty ({n} views, llff_hold={hold})")
         if max_views is not None:
-            idx = idx[: max(1, max_views)]
+            idx = idx[view_indices(idx.size, max(1, max_views))]
         k = idx.size
         cams = Cameras(
             c2w=c2w[idx],

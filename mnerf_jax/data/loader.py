@@ -50,7 +50,8 @@ def load_scene(
                 preset's). A nerfstudio / instant-ngp file kept in its frame with ``aabb_scale``
                 defines its own box.
     splits:     which splits to load
-    max_views:  keep only the first ``max_views`` views of each split (quick looks, tests)
+    max_views:  keep only ``max_views`` evenly spread views of each split (``view_indices``: quick looks,
+                tests, evaluations of a few views, which then read only those images)
     """
     kind = data_cfg.dataset
     if kind not in DATASETS:

@@ -45,7 +45,7 @@ import numpy as np
 from mnerf_jax.data import capture
 from mnerf_jax.data.blender import number, parse_matrix
 from mnerf_jax.data.images import image_header, load_images, read_json, resolve_image, scaled_size
-from mnerf_jax.data.types import Cameras, DataError, DataWarning, SceneSplit, SceneTransform
+from mnerf_jax.data.types import Cameras, DataError, DataWarning, SceneSplit, SceneTransform, view_indices
 
 # Normalised captures (cameras in [-1, 1]^3) when no render config is given: the capture preset's box,
 # which leaves room beyond the cameras for the background, and its near/far.
@@ -289,7 +289,7 @@ def load_nerfstudio(
         if not idx:
             raise DataError(f"{json_path}: the {split} split is empty")
         if max_views is not None:
-            idx = idx[: max(1, max_views)]
+            idx = [idx[i] for i in view_indices(len(idx), max(1, max_views))]
         out[split] = _load_split([cams[i] for i in idx], white_bg, size)
     box = ngp_aabb(meta, str(json_path)) if transform is None else None
     return out, box, transform

@@ -15,6 +15,14 @@ import numpy as np
 from mnerf_jax.core.errors import MnerfError
 
 
+def view_indices(n: int, limit: int | None) -> list[int]:
+    """``limit`` evenly spread view indices out of ``n``, first and last included (all when limit is None,
+    ≤ 0 or ≥ n): the views a quick look, a test or an evaluation of ``limit`` views uses."""
+    if limit is None or limit <= 0 or limit >= n:
+        return list(range(n))
+    return sorted({int(round(v)) for v in np.linspace(0, n - 1, limit)})
+
+
 class DataError(MnerfError):
     """Bad scene input: a missing or unreadable file, malformed metadata, inconsistent images."""
 

@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from mnerf_jax.core import rundir
 from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.data import view_indices
 from mnerf_jax.data.images import to_uint8
 from mnerf_jax.evaluation import watermarked as wm_eval
 from mnerf_jax.imaging import attack_suites, augment
@@ -38,7 +39,6 @@ from mnerf_jax.reader.identification import (
     identify_logits,
     logits_to_bits,
 )
-from mnerf_jax.tensorf import run as runs
 from mnerf_jax.watermark import run as wm_run
 
 NO_ATTACK = "none"
@@ -83,7 +83,7 @@ def saved_renders(
     names = list(result.get("view_names") or [])
     if not names:
         raise MnerfError(f"{path} lists no view names (written by an older mnerf evaluate); evaluate again")
-    chosen = [names[i] for i in runs.view_indices(len(names), views)]
+    chosen = [names[i] for i in view_indices(len(names), views)]
     folder = run_dir / f"eval-{split}"
     renders = []
     for n in range(int(result["num_ids"])):

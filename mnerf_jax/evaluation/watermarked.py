@@ -17,6 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from mnerf_jax.core import rundir
+from mnerf_jax.data import view_indices
 from mnerf_jax.data.images import round_to_8bit, to_uint8
 from mnerf_jax.imaging import metrics
 from mnerf_jax.reader import extract, read_window, significance
@@ -120,8 +121,8 @@ def evaluate_watermarked_run(
     wm = with_read_jitter(run.config.watermark, read_jitter)
     thr = float(wm.reading.id_threshold if threshold is None else threshold)
     test = significance.check_test(wm.reading.id_test if test is None else test)
-    scene_split = run.load_scene(data_path, splits=(split,)).split(split)
-    indices = runs.view_indices(len(scene_split), max_views)
+    scene_split = run.load_scene(data_path, splits=(split,), max_views=max_views).split(split)
+    indices = view_indices(len(scene_split), max_views)
     names = [scene_split.names[i] for i in indices]
     gt = np.asarray(scene_split.images[indices], np.float32)
     n_ids, n_views = keys.num_ids, len(indices)

@@ -18,7 +18,7 @@ import numpy as np
 from mnerf_jax.core.checkpoint import CheckpointStore
 from mnerf_jax.core.config import Config
 from mnerf_jax.core.rundir import TENSORF_KIND, RunError, read_run_config, require_marker
-from mnerf_jax.data import camera_rays, load_scene
+from mnerf_jax.data import camera_rays, load_scene, view_indices
 from mnerf_jax.imaging import metrics
 from mnerf_jax.tensorf import budgets, chunked, render
 from mnerf_jax.tensorf.fit import checkpoint as fit_checkpoint
@@ -62,12 +62,18 @@ class LoadedRun:
     def data_path(self) -> str | None:
         return self.marker.get("data")
 
-    def load_scene(self, data: str | Path | None = None, splits: Sequence[str] = ("test",)) -> Any:
-        """The run's scene (or another copy of it at ``data``) with ``splits``."""
+    def load_scene(
+        self,
+        data: str | Path | None = None,
+        splits: Sequence[str] = ("test",),
+        max_views: int | None = None,
+    ) -> Any:
+        """The run's scene (or another copy of it at ``data``) with ``splits``, each ``max_views`` evenly
+        spread views of it (None: all; ``data.view_indices``)."""
         path = data if data is not None else self.data_path
         if path is None and self.config.data.dataset != "procedural":
             raise RunError(f"{self.run_dir} does not record where its data is; pass --data")
-        return load_scene(path, self.config.data, self.config.render, tuple(splits))
+        return load_scene(path, self.config.data, self.config.render, tuple(splits), max_views or None)
 
 
 def load_tensorf_run(run_dir: str | Path, step: int | None = None) -> LoadedRun:
@@ -141,13 +147,6 @@ def render_views(
         if on_view is not None:
             on_view(int(i), rgb)
     return images
-
-
-def view_indices(n: int, limit: int | None) -> list[int]:
-    """``limit`` evenly spread view indices out of ``n`` (all when limit is None or >= n)."""
-    if limit is None or limit <= 0 or limit >= n:
-        return list(range(n))
-    return sorted({int(round(v)) for v in np.linspace(0, n - 1, limit)})
 
 
 def evaluate_split(
