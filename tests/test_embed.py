@@ -454,16 +454,12 @@ def test_embedding_config_records_the_schedule_it_runs(tiny: TinyRuns) -> None:
 
 def test_resume_continues_exactly(tiny: TinyRuns) -> None:
     # 3 steps, stop, resume to 5  ==  5 steps in one go, across the phase boundary (phase 2 with its random
-    # augmentations). The decoder reads a read window (watermark.reading.window), which the run's decoder file
-    # records; this costs the steps' compilation (the tiny run reads whole images).
+    # augmentations). The tiny run's own settings, so the steps compiled for it serve.
     root = tiny.root
     overrides = [
         *tiny.embed_overrides,
         "watermark.schedule.phase1_steps=2",
         "watermark.schedule.phase2_steps=78",
-        "watermark.reading.window=0.75",
-        "watermark.reading.background=-1",
-        "watermark.reading.jitter=1",
     ]
     args = dict(overrides=overrides, decoder_path=tiny.decoder, progress=False)
     E.embed(tiny.fit, root / "r_split", 2, 8, stop_at=3, **args)
@@ -482,9 +478,22 @@ def test_resume_continues_exactly(tiny: TinyRuns) -> None:
         json.loads((root / "r_split" / "keys.json").read_text())["messages"]
         == json.loads((root / "r_once" / "keys.json").read_text())["messages"]
     )
-    meta = decoder_io.load_decoder(root / "r_split" / "decoder.npz").metadata
+
+
+def test_the_run_records_its_read_window_in_its_decoder_file(tiny: TinyRuns) -> None:
+    # The decoder reads a read window (watermark.reading.window), which the run's decoder file and config
+    # record from the start (stopped before its first step: nothing to compile).
+    overrides = [
+        *tiny.embed_overrides,
+        "watermark.reading.window=0.75",
+        "watermark.reading.background=-1",
+        "watermark.reading.jitter=1",
+    ]
+    out = tiny.root / "r_window"
+    E.embed(tiny.fit, out, 2, 8, stop_at=0, overrides=overrides, decoder_path=tiny.decoder, progress=False)
+    meta = decoder_io.load_decoder(out / "decoder.npz").metadata
     assert (meta["read_window"], meta["read_background"], meta["read_jitter"]) == (0.75, -1.0, 1)
-    assert a.config.watermark.reading.window == 0.75
+    assert wm_run.load_watermarked_run(out).config.watermark.reading.window == 0.75
 
 
 def test_a_time_budget_ends_the_run_early_as_a_prefix_of_the_full_one(tiny: TinyRuns) -> None:
@@ -1102,15 +1111,14 @@ def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> Non
 def test_embedding_steps_receive_the_ramps_budget(tiny: TinyRuns) -> None:
     # The host loop hands step s the ramp's budget at s (the step reports it back as psnr_budget).
     root = tiny.root
-    # No augmentations: a faster compile (the ramp does not depend on them).
+    # Phase 1 only: one step to compile (the ramp is the host loop's, whichever phase steps).
     overrides = [
         *tiny.embed_overrides,
-        "watermark.schedule.phase1_steps=1",
-        "watermark.schedule.phase2_steps=3",
+        "watermark.schedule.phase1_steps=4",
+        "watermark.schedule.phase2_steps=0",
         "watermark.fidelity.psnr=30",
         "watermark.fidelity.psnr_start=10",
         "watermark.fidelity.ramp=0.25,0.75",
-        "watermark.augment.per_step=0",
     ]
     seen: dict[int, float] = {}
     E.embed(

@@ -73,7 +73,9 @@ class LoadedRun:
         path = data if data is not None else self.data_path
         if path is None and self.config.data.dataset != "procedural":
             raise RunError(f"{self.run_dir} does not record where its data is; pass --data")
-        return load_scene(path, self.config.data, self.config.render, tuple(splits), max_views or None)
+        return load_scene(
+            path, self.config.data, self.config.render, tuple(splits), max_views=max_views or None
+        )
 
 
 def load_tensorf_run(run_dir: str | Path, step: int | None = None) -> LoadedRun:
