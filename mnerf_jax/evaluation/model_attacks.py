@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 from tqdm import tqdm
 
@@ -77,7 +78,8 @@ def evaluate_model_attacks(
     ``views``: evenly spread views of the split (None or 0: all); ``finetune_steps``: the fine-tuning rows
     (one trajectory, snapshots at each count); ``held_id``: the ID the fine-tuning attacker renders; ``seed``:
     the noise and the fine-tuning's rays. Keys as :func:`evaluation.attacks.evaluate_attacks` writes them
-    (``attacks`` rows with ``score`` + ``family``, ``description``, ``value`` and the false claims), plus
+    (``attacks`` rows with ``score`` + ``family``, ``description``, ``value`` and the false claims; a
+    fine-tuning row also its last step's training PSNR, ``train_psnr``, in dB), plus
     ``model: true``, ``held_id``, ``finetune_steps``, ``clean_source`` (``saved``, ``rendered`` or None)
     and ``threshold_source``.
     """
@@ -107,7 +109,11 @@ def evaluate_model_attacks(
         bar = tqdm(total=len(chosen) + 1, unit="attack", desc=f"model attacks ({suite})", dynamic_ncols=True)
     rows: dict[str, Any] = {}
 
+    placement = jax.tree.leaves(run.params)[0].sharding
+
     def score_params(name: str, params: Any, attack: M.ModelAttack | None) -> None:
+        # Placed as the loaded params are: jit compiles again for arguments placed differently.
+        params = jax.device_put(params, placement)
         renders = wm_run.render_every_id(dataclasses.replace(run, params=params), part.cameras, indices)
         images = np.concatenate([to_uint8(renders[k]) for k in range(n)])
         row = image_attacks.score(_decode(decoder, wm, images).reshape(n, v, -1), messages, *rule_args)
@@ -129,7 +135,13 @@ def evaluate_model_attacks(
             if bar is not None:
                 most = int(max(a.value for a in tuned))
                 steps_bar = tqdm(total=most, unit="step", desc="fine-tune", leave=False, dynamic_ncols=True)
-            on_step = (lambda k, metrics: steps_bar.update(1)) if steps_bar is not None else None
+            psnr: dict[int, float] = {}
+
+            def on_step(k: int, metrics: dict[str, float]) -> None:
+                psnr[k] = float(metrics["psnr"])
+                if steps_bar is not None:
+                    steps_bar.update(1)
+
             try:
                 snapshots = M.finetune_params(
                     run, scene, [int(a.value) for a in tuned], held_id, seed, on_step=on_step
@@ -139,6 +151,7 @@ def evaluate_model_attacks(
                     steps_bar.close()
             for attack in tuned:
                 score_params(attack.name, snapshots[int(attack.value)], attack)
+                rows[attack.name]["train_psnr"] = psnr.get(int(attack.value))  # the last step's batch
     finally:
         if bar is not None:
             bar.close()

@@ -67,6 +67,9 @@ def continue_fit(
         key=jax.random.fold_in(jax.random.key(seed), SEED_SALT),
         geometry=geometry,
     )
+    # Committed to the device as the step's outputs are: the second step then reuses the first's executable
+    # (jit compiles again for arguments whose placement differs, and a fresh state's scalars are uncommitted).
+    state = jax.device_put(state, jax.devices()[0])
     trainer = Trainer(config, scene, state, training_rays(scene, geometry), fns, phase_start=start)
     trainer.phase_end = start + marks[-1]  # budgets may shrink while enough steps remain
 
