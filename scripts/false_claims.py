@@ -74,7 +74,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
 
-    from mnerf_jax.cli.process import reexec_with_huge_pages
     from mnerf_jax.core.errors import MnerfError
     from mnerf_jax.evaluation import false_claims
 
@@ -82,7 +81,6 @@ def main(argv: list[str] | None = None) -> int:
         if args.recalibrate:
             result = false_claims.recalibrate(args.run, args.rate)
         else:
-            reexec_with_huge_pages([sys.executable, *sys.argv])
             t0 = time.perf_counter()
             result = false_claims.measure_false_claims(
                 args.run,
@@ -113,4 +111,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    from mnerf_jax.cli.process import reexec_with_huge_pages
+
+    reexec_with_huge_pages([sys.executable, *sys.argv])  # XLA's buffers on huge pages, as mnerf's commands
     sys.exit(main())
