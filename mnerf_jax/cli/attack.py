@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=0,
         metavar="N",
-        help="score N evenly spread evaluated views (default 0: all)",
+        help="score N evenly spread evaluated views (with --model-suite: views of --split) (default 0: all)",
     )
     parser.add_argument(
         "--model-suite",
