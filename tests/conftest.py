@@ -72,6 +72,8 @@ XDIST_GROUPS = {
     "test_embed.py": "tiny-watermarked",
     "test_wm_eval.py": "tiny-watermarked",
     "test_wm_cli.py": "tiny-watermarked",
+    "test_model_attacks.py": "tiny-watermarked",
+    "test_false_claims.py": "tiny-watermarked",
     "test_cli.py": "tiny-schedule",
     "test_train.py": "tiny-schedule",
 }

@@ -197,17 +197,23 @@ def test_extract_identifies_the_id_of_rendered_images(
         assert r["p_corrected"] >= 2 / 256 and r["id"] == -1 and r["threshold"] == 1e-3
     code, out, _ = mnerf("extract", "--run", tiny.wm, *paths)
     lines = out.splitlines()
-    assert code == 0 and len(lines) == 4
-    for line, r in zip(lines, records, strict=True):
+    assert code == 0 and len(lines) == 5
+    # The last line: the threshold decided by, and that it is uncalibrated (test_false_claims calibrates one).
+    assert (
+        lines[-1].startswith("mnerf extract: threshold 0.001 (binomial test; the run's")
+        and "uncalibrated" in lines[-1]
+    )
+    for line, r in zip(lines[:-1], records, strict=True):
         assert line.startswith(r["image"]) and line.endswith(identification_line(r))
         assert "no watermark (binomial p ≥ 0.001; best ID" in line or "no watermark (tie between keys" in line
     # With a looser threshold an image is claimed exactly when its corrected p-value is below it.
     code, out, _ = mnerf("extract", "--run", tiny.wm, *paths, "--threshold", "0.5", "--json")
     loose = [json.loads(line) for line in out.splitlines()]
     for r, b in zip(loose, records, strict=True):
-        same = [k for k in b if k not in ("id", "threshold")]
+        same = [k for k in b if k not in ("id", "threshold", "threshold_source", "decision_rule")]
         assert [r[k] for k in same] == [b[k] for k in same]
         assert r["threshold"] == 0.5 and r["id"] == (r["best_id"] if r["p_corrected"] < 0.5 else -1)
+        assert r["threshold_source"] == "given" and b["threshold_source"] == "config"
         assert identification_line(r).startswith(f"ID {r['id']}" if r["id"] >= 0 else "no watermark")
     # --test sign_flip decides by the confidence-weighted p-value (both are in every record).
     code, out, _ = mnerf(

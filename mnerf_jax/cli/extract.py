@@ -43,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="P",
         help="with --run: claim an ID only when its Bonferroni-corrected p-value is below P "
-        "(default: the run's watermark.reading.id_threshold, 1e-3 unless set)",
+        "(default: the run's calibrated threshold (scripts/false_claims.py), else its "
+        "watermark.reading.id_threshold, 1e-3 unless set)",
     )
     parser.add_argument(
         "--test",
@@ -127,6 +128,7 @@ def run_identify(args: argparse.Namespace) -> int:
     width = max(len(r["image"]) for r in records)
     for record in records:
         print(f"{record['image']:<{width}}  {identification_line(record)}")
+    print(f"mnerf extract: {records[0]['decision_rule']}")
     return 0
 
 

@@ -31,7 +31,10 @@ def attack_order(result: Mapping[str, Any]) -> list[str]:
 
 
 def title(result: Mapping[str, Any]) -> str:
-    """What was run: ``suite S``, ``S attacks`` (the 14 augmentations at strength S) or ``named attacks``."""
+    """What was run: ``model suite S`` (attacks on the field), ``suite S``, ``S attacks`` (the 14
+    augmentations at strength S) or ``named attacks``."""
+    if result.get("model"):
+        return f"model suite {result['suite']}"
     if result.get("suite"):
         return f"suite {result['suite']}"
     if result.get("named"):

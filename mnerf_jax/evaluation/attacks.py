@@ -32,13 +32,14 @@ from mnerf_jax.data.images import to_uint8
 from mnerf_jax.evaluation import watermarked as wm_eval
 from mnerf_jax.imaging import attack_suites, augment
 from mnerf_jax.imaging.attack_suites import Attack
-from mnerf_jax.reader import extract, significance
+from mnerf_jax.reader import extract
 from mnerf_jax.reader.identification import (
     bit_accuracy,
     false_detection_summary,
     identify_logits,
     logits_to_bits,
 )
+from mnerf_jax.watermark import decision
 from mnerf_jax.watermark import run as wm_run
 
 NO_ATTACK = "none"
@@ -187,7 +188,8 @@ def evaluate_attacks(
     (:mod:`imaging.attack_suites`), the same for every ID and for the clean renders.
     Keys: ``split``, ``suite``, ``strength`` (the augmentations' strength without a suite), ``named``
     (attacks named one by one), ``views``, ``view_names``,
-    ``num_ids``, ``bits``, ``seed``, ``test``, ``threshold``, ``step``, ``order`` (the rows in order),
+    ``num_ids``, ``bits``, ``seed``, ``test``, ``threshold`` (the run's calibrated one where it has one,
+    ``threshold_source``: ``watermark.decision``), ``step``, ``order`` (the rows in order),
     ``attacks`` ``{name: score(...) + family, description, and with the clean renders false_claims(...)}``,
     ``skipped`` ``{name: why}`` (attacks that cannot run here, such as WebP without libwebp),
     ``false_claims_measured`` and ``mean_over_attacks`` (each score's mean over the attacks, "none" left out).
@@ -196,8 +198,8 @@ def evaluate_attacks(
     attacks, label = choose_attacks(suite, names, strength, regen)
     keys, decoder = wm_run.load_keys_and_decoder(run_dir)
     saved = rundir.read_run_config(run_dir).watermark
-    threshold = float(saved.reading.id_threshold)
-    test = significance.check_test(saved.reading.id_test)
+    rule = decision.decision_rule(run_dir, saved.reading, decoder.fingerprint)
+    threshold, test = rule.threshold, rule.test
     evaluation, chosen, renders = saved_renders(run_dir, split, views)
     clean = saved_clean(run_dir, split, chosen)
     messages = np.asarray(keys.messages, np.float32)
@@ -251,6 +253,7 @@ def evaluate_attacks(
         "seed": seed,
         "test": test,
         "threshold": threshold,
+        "threshold_source": rule.source,
         "step": evaluation.get("step"),
         "order": order,
         "attacks": rows,

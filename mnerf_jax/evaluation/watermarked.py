@@ -20,7 +20,7 @@ from mnerf_jax.core import rundir
 from mnerf_jax.data import view_indices
 from mnerf_jax.data.images import round_to_8bit, to_uint8
 from mnerf_jax.imaging import metrics
-from mnerf_jax.reader import extract, read_window, significance
+from mnerf_jax.reader import extract, read_window
 from mnerf_jax.reader.identification import (
     bit_accuracy,
     false_detection_summary,
@@ -30,6 +30,7 @@ from mnerf_jax.reader.identification import (
     logits_to_bits,
 )
 from mnerf_jax.tensorf import run as runs
+from mnerf_jax.watermark import decision
 from mnerf_jax.watermark import run as wm_run
 
 # The clean model's renders of the evaluated views, beside each ID's: WMRUN/eval-<split>/clean/<view>.png.
@@ -104,7 +105,8 @@ def evaluate_watermarked_run(
     ``lpips_clean_model`` (vs the clean model's renders), ``clean_psnr`` (clean model vs ground truth),
     ``identification_accuracy`` (best-matching key by soft correlation is the rendered ID;
     ``identification_accuracy_hard``: by agreeing bits), ``verified_identification_accuracy`` (and its p-value
-    under ``test``, default the run's ``watermark.reading.id_test``, passes ``threshold``; under each test:
+    under ``test``, default the run's ``watermark.reading.id_test``, passes ``threshold``, default the run's
+    calibrated one or its ``watermark.reading.id_threshold`` (``watermark.decision``); under each test:
     ``verified_identification_accuracy_by_test``), ``misidentification_rate`` (named as another ID;
     ``..._by_test``), ``clean_bit_accuracy``, ``clean_false_detection_rate``
     (``..._by_test``; and per ID, which keys the false detections claimed: ``clean_false_detection_ids [N]``),
@@ -119,8 +121,8 @@ def evaluate_watermarked_run(
     keys = run.extras["keys"]
     decoder = run.extras["decoder"]
     wm = with_read_jitter(run.config.watermark, read_jitter)
-    thr = float(wm.reading.id_threshold if threshold is None else threshold)
-    test = significance.check_test(wm.reading.id_test if test is None else test)
+    rule = decision.decision_rule(run_dir, wm.reading, decoder.fingerprint, threshold, test)
+    thr, test = rule.threshold, rule.test
     scene_split = run.load_scene(data_path, splits=(split,), max_views=max_views).split(split)
     indices = view_indices(len(scene_split), max_views)
     names = [scene_split.names[i] for i in indices]
@@ -133,7 +135,7 @@ def evaluate_watermarked_run(
     # A view's renders count one per ID (a render of K IDs at once is 3K channels wide).
     tick = (lambda i, rgb: bar.update(rgb.shape[-1] // 3)) if bar is not None else None
     try:
-        source = _clean_model(run)
+        source = clean_model(run)
         clean = None
         if source is not None:
             clean = np.stack(runs.render_views(source, scene_split.cameras, indices, on_view=tick))
@@ -228,6 +230,7 @@ def evaluate_watermarked_run(
         )
     }
     result["identification"]["ids"] = list(range(n_ids))
+    result["identification"]["threshold_source"] = rule.source  # given, calibrated or config
     if clean is not None:
         vs_clean = _quality(stacked, np.tile(clean, (n_ids, 1, 1, 1)), lpips_net)
         clean_q = _quality(clean, gt, lpips_net)
@@ -274,7 +277,7 @@ def evaluate_watermarked_run(
     return result
 
 
-def _clean_model(run: Any) -> Any:
+def clean_model(run: Any) -> Any:
     """The run the watermark was embedded into, or None when it is gone (clean figures are then left out)."""
 
     source = run.extras.get("source_run")
@@ -298,16 +301,17 @@ def identify_images(
     --run WMRUN IMAGE...``): one record per image with the bits, the best-matching ID, its bit accuracy,
     the p-values (binomial and sign-flip, each also Bonferroni-corrected) and the decision ``id`` (−1: no
     watermark, i.e. the corrected p-value of ``test`` is not below ``threshold``; defaults: the run's
-    ``watermark.reading.id_test`` and ``watermark.reading.id_threshold``). ``read_jitter``: as in
-    :func:`evaluate_watermarked_run`.
+    ``watermark.reading.id_test``, and its calibrated threshold or ``watermark.reading.id_threshold``:
+    ``watermark.decision``), the rule's fields (``threshold_source``, ``calibration``) and its description
+    (``decision_rule``). ``read_jitter``: as in :func:`evaluate_watermarked_run`.
 
     Only the run's keys, decoder and config are read (not its field checkpoint).
     """
 
     keys, decoder = wm_run.load_keys_and_decoder(run_dir)
     saved = with_read_jitter(rundir.read_run_config(run_dir).watermark, read_jitter)
-    thr = float(saved.reading.id_threshold if threshold is None else threshold)
-    test = significance.check_test(saved.reading.id_test if test is None else test)
+    rule = decision.decision_rule(run_dir, saved.reading, decoder.fingerprint, threshold, test)
+    thr, test = rule.threshold, rule.test
     logits = extract.decode_paths(
         decoder.variables, paths, decoder.wavelet, batch_size, *read_window.of_config(saved.reading)
     )
@@ -323,8 +327,8 @@ def identify_images(
             "p_value_sign_flip": float(ident.p_value_sign_flip[i]),
             "p_corrected_sign_flip": float(ident.p_corrected_sign_flip[i]),
             "id": int(ident.decision[i]),
-            "threshold": thr,
-            "test": test,
+            **rule.as_record(),
+            "decision_rule": rule.describe(),
         }
         for i, (p, row) in enumerate(zip(paths, logits, strict=True))
     ]

@@ -372,6 +372,24 @@ def field_fns(model_cfg: ModelConfig, cfg: WatermarkConfig) -> FieldFns:
     return FieldFns(density=TensorfDensity(model_cfg), colour=_Colour(model_cfg, cfg))
 
 
+@dataclasses.dataclass(frozen=True)
+class _HeldIdColour:
+    model_cfg: ModelConfig
+    cfg: WatermarkConfig
+    index: int
+
+    def __call__(self, params: Params, cond: Any, xyz: Array, viewdirs: Array) -> Array:
+        held = condition(params, self.index, self.cfg)  # from params: gradients reach Emb and Mod
+        return colour(params, held, xyz, viewdirs, self.model_cfg, self.cfg)
+
+
+def held_id_field_fns(model_cfg: ModelConfig, cfg: WatermarkConfig, index: int) -> FieldFns:
+    """FieldFns of the watermarked field as ID ``index`` renders it, whatever ``cond`` the renderer passes:
+    the ID's FiLM terms are computed from the params inside the colour function, so a fit that passes
+    ``cond=None`` (``tensorf.fit``) trains the whole field, the watermark module with it."""
+    return FieldFns(density=TensorfDensity(model_cfg), colour=_HeldIdColour(model_cfg, cfg, int(index)))
+
+
 def watermark_param_count(params: Params) -> int:
     """Scalars added by the watermark module (``wm`` plus the MLP's extra rows)."""
     extra = [v for k, v in params.get("mlp", {}).items() if k in ("out_extra", "in_extra")]

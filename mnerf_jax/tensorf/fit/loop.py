@@ -204,7 +204,7 @@ class FitResult:
 LogFn = Callable[[int, dict[str, float]], None]
 
 
-class _Trainer:
+class Trainer:
     """Host-side loop state: rays, sampler, budgets, event bookkeeping."""
 
     def __init__(
@@ -428,7 +428,7 @@ def fit(
             prior = float(meta.get("train_seconds", 0.0))
         else:
             prior = 0.0
-        trainer = _Trainer(config, scene, state, rays, fns, **extra)
+        trainer = Trainer(config, scene, state, rays, fns, **extra)
         trainer.prior_seconds = prior
         start = int(trainer.state.step)
         last: dict[str, float] = {}
