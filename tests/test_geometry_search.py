@@ -4,14 +4,19 @@ decoder reading its rotated and rescaled check images again."""
 
 from __future__ import annotations
 
+import json
+import shutil
+from pathlib import Path
+
 import numpy as np
 import pytest
 from skimage import transform
 
-from mnerf_jax.core import config
+from mnerf_jax.core import config, rundir
 from mnerf_jax.core.errors import ConfigError, MnerfError
+from mnerf_jax.evaluation import attacks as wm_attacks
 from mnerf_jax.imaging import attacks as A
-from mnerf_jax.reader import decoder_io
+from mnerf_jax.reader import decoder_io, keys
 from mnerf_jax.reader import geometry_search as G
 from mnerf_jax.reader import identification as V
 
@@ -200,3 +205,101 @@ def test_the_search_keeps_the_plain_read_of_an_untransformed_image(decoder, chec
         c.is_identity or s >= p for c, s, p in zip(kept.chosen_candidates(), searched, plain, strict=True)
     )
     assert sum(c.is_identity for c in kept.chosen_candidates()) >= 3
+
+
+# ---------------------------------------------------------------------- mnerf extract and mnerf attack
+
+
+@pytest.fixture(scope="module")
+def check_run(tmp_path_factory, check) -> Path:
+    """A watermarked run's reading files without a field: the shipped decoder, the 8 check messages as its
+    keys, the whole image read; its 'evaluation' holds each ID's check image as its one view (and a clean
+    render), what ``mnerf extract --run`` and ``mnerf attack`` read."""
+    import imageio.v3 as iio
+
+    run = tmp_path_factory.mktemp("check_run")
+    cfg = config.load_config("procedural", ["watermark.reading.window=0"])
+    rundir.write_run_files(run, cfg, data=None, kind=rundir.WATERMARK_KIND)
+    shutil.copy(decoder_io.shipped_decoder_path(16), run / "decoder.npz")
+    messages = check[1]
+    keys.save_keys(run, keys.KeySet(messages, keys.min_pairwise_hamming(messages), seed=0))
+    for k, image in enumerate(check[0]):
+        (run / "eval-test" / f"id{k}").mkdir(parents=True)
+        iio.imwrite(run / "eval-test" / f"id{k}" / "v0.png", image)
+    (run / "eval-test" / "clean").mkdir()
+    iio.imwrite(run / "eval-test" / "clean" / "v0.png", np.full((128, 128, 3), 200, np.uint8))
+    (run / "eval-test.json").write_text(json.dumps({"view_names": ["v0"], "num_ids": 8, "step": 0}))
+    return run
+
+
+def test_extract_searches_with_a_run_only(check_run, check, tmp_path, mnerf) -> None:
+    import imageio.v3 as iio
+
+    path = tmp_path / "rotated.png"
+    iio.imwrite(path, _rotated(check[0][3:4], 15.0)[0])
+    code, out, err = mnerf("extract", path, "--search", "rotation")
+    assert code == 2 and "--search needs --run" in err and len(err.strip().splitlines()) == 1
+    code, out, err = mnerf(
+        "extract",
+        path,
+        "--run",
+        check_run,
+        "--json",
+        "--search",
+        "rotation",
+        "--search-degrees=-15,15",
+        "--threshold",
+        "0.05",
+    )
+    assert code == 0, err
+    record = json.loads(out)
+    assert record["candidate"] == {"scale": 1.0, "degrees": 15.0} and record["reads"] == 3
+    assert record["id"] == 3 and record["p_corrected"] == pytest.approx(min(1.0, 24 * record["p_value"]))
+    # 3 reads × 8 keys: the smallest corrected p-value is 3.7e-4, so a threshold of 1e-4 names nothing.
+    code, out, err = mnerf(
+        "extract",
+        path,
+        "--run",
+        check_run,
+        "--search",
+        "rotation",
+        "--search-degrees=-15,15",
+        "--threshold",
+        "1e-4",
+    )
+    assert code == 0 and "no image can be named" in err
+    assert "read as rotation 15°, corrected over 3 reads" in out and "no watermark" in out
+    code, out, err = mnerf(
+        "extract", path, "--run", check_run, "--search-scales", "0.5,x", "--search", "scale"
+    )
+    assert code == 2 and "--search-scales takes comma-separated numbers" in err
+
+
+def test_attack_rows_are_read_with_and_without_the_search(check_run, mnerf) -> None:
+    code, out, err = mnerf(
+        "attack",
+        "--run",
+        check_run,
+        "--attacks",
+        "rotate15",
+        "--search",
+        "rotation",
+        "--search-degrees=-15,15",
+        "--quiet",
+    )
+    assert code == 0, err
+    assert "S: named" in out and "rotation search (3 candidates" in out
+    result = json.loads((check_run / "eval-test-attacks.json").read_text())
+    assert result["search"]["candidates"] == 3
+    row = result["attacks"]["rotate15"]
+    assert row["bit_accuracy_mean"] <= 0.7
+    assert row["search"]["bit_accuracy_mean"] >= result["attacks"]["none"]["bit_accuracy_mean"] - 1 / 16
+    assert sum(row["search"]["candidates_kept"].values()) == 8
+    assert "false_claim_rate" in row["search"]
+    assert result["mean_over_attacks_search"]["bit_accuracy_mean"] == row["search"]["bit_accuracy_mean"]
+    # Without a search the rows are the search's plain read (its first candidate), and nothing else.
+    plain = wm_attacks.evaluate_attacks(check_run, names=["rotate15"])
+    assert plain["search"] is None and "search" not in plain["attacks"]["rotate15"]
+    for name in ("none", "rotate15"):
+        for key in ("bit_accuracy_mean", "identification_accuracy", "false_claim_rate"):
+            assert plain["attacks"][name][key] == pytest.approx(result["attacks"][name][key]), (name, key)

@@ -20,7 +20,7 @@ from mnerf_jax.core import rundir
 from mnerf_jax.data import view_indices
 from mnerf_jax.data.images import round_to_8bit, to_uint8
 from mnerf_jax.imaging import metrics
-from mnerf_jax.reader import extract, read_window, significance
+from mnerf_jax.reader import extract, geometry_search, read_window, significance
 from mnerf_jax.reader.identification import (
     bit_accuracy,
     false_detection_summary,
@@ -293,13 +293,19 @@ def identify_images(
     batch_size: int = 32,
     test: str | None = None,
     read_jitter: int | None = None,
+    search: str | None = None,
+    search_scales: tuple[float, ...] | None = None,
+    search_degrees: tuple[float, ...] | None = None,
 ) -> list[dict[str, Any]]:
     """Decode image files with a watermarked run's decoder and identify the ID of each (``mnerf extract
     --run WMRUN IMAGE...``): one record per image with the bits, the best-matching ID, its bit accuracy,
     the p-values (binomial and sign-flip, each also Bonferroni-corrected) and the decision ``id`` (−1: no
     watermark, i.e. the corrected p-value of ``test`` is not below ``threshold``; defaults: the run's
     ``watermark.reading.id_test`` and ``watermark.reading.id_threshold``). ``read_jitter``: as in
-    :func:`evaluate_watermarked_run`.
+    :func:`evaluate_watermarked_run`. ``search`` (``none``, ``scale``, ``rotation``, ``geometry``; default the
+    run's ``watermark.reading.search``) with its grids: each image is read under every candidate transform
+    undone and the best-supported read is kept (``reader.geometry_search``; its p-values corrected over
+    candidates × keys; the record names the ``candidate`` and counts the ``reads``).
 
     Only the run's keys, decoder and config are read (not its field checkpoint).
     """
@@ -308,12 +314,21 @@ def identify_images(
     saved = with_read_jitter(rundir.read_run_config(run_dir).watermark, read_jitter)
     thr = float(saved.reading.id_threshold if threshold is None else threshold)
     test = significance.check_test(saved.reading.id_test if test is None else test)
-    logits = extract.decode_paths(
-        decoder.variables, paths, decoder.wavelet, batch_size, *read_window.of_config(saved.reading)
-    )
-    ident = identify_logits(logits, keys.messages, thr, test)
-    return [
-        {
+    searched = geometry_search.of_config(saved.reading, search, search_scales, search_degrees)
+    reading = read_window.of_config(saved.reading)
+    chosen: list[geometry_search.Candidate] = []
+    if searched.active:
+        every = geometry_search.search_paths(
+            decoder.variables, paths, searched, decoder.wavelet, batch_size, *reading
+        )
+        kept = geometry_search.identify(every, keys.messages, searched.candidates(), thr, test)
+        logits, ident, chosen = kept.logits, kept.identification, kept.chosen_candidates()
+    else:
+        logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, batch_size, *reading)
+        ident = identify_logits(logits, keys.messages, thr, test)
+    records = []
+    for i, (p, row) in enumerate(zip(paths, logits, strict=True)):
+        record = {
             "image": str(p),
             "bits": "".join(str(int(b)) for b in logits_to_bits(row)),
             "best_id": int(ident.best_id[i]),
@@ -325,6 +340,10 @@ def identify_images(
             "id": int(ident.decision[i]),
             "threshold": thr,
             "test": test,
+            "min_attainable_p": ident.min_attainable_p,
+            "search": searched.mode,
         }
-        for i, (p, row) in enumerate(zip(paths, logits, strict=True))
-    ]
+        if searched.active:
+            record.update(candidate=chosen[i].to_dict(), reads=ident.reads)
+        records.append(record)
+    return records
