@@ -17,7 +17,8 @@ picking it by soft correlation keeps the bound). The decision rule: report the b
 ``p_N < threshold`` (default :data:`DEFAULT_THRESHOLD` = 1e-3, i.e. at most one false claim per thousand
 unwatermarked images while the decoder does not know the keys; one fine-tuned with them in phase 2 can claim
 more, which evaluation measures on the clean renders), otherwise "no watermark" (ID −1). A tie between two
-keys at the best score is undecided (−1) too.
+keys at the best score is undecided (−1) too. An image read C times (a geometry search's candidates,
+:func:`identify_best_read`) keeps its best (read, key) pair, corrected over the C·N pairs: ``min(1, C·N·p)``.
 
 The decision may use the sign-flip test instead (``test="sign_flip"``, `significance.py`): the same null
 hypothesis, the agreement weighted by each bit's confidence, so a match wrong only in its most doubtful bits
