@@ -195,7 +195,7 @@ def search_logits(
     out: np.ndarray | None = None
     groups: dict[tuple[int, int], list[int]] = {}
     for c, candidate in enumerate(candidates):
-        groups.setdefault(candidate.output_size(h, w) if not candidate.is_identity else (h, w), []).append(c)
+        groups.setdefault(candidate.output_size(h, w), []).append(c)
     for (rows, cols), members in groups.items():
         per = max(1, min(b, WARP_PIXEL_BUDGET // (rows * cols * len(members))))
         per = -(-b // -(-b // per))  # even slices, the last one padded: one compiled shape
