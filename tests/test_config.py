@@ -33,6 +33,8 @@ def test_a_flat_config_json_from_before_the_sections_loads_as_today(tmp_path: Pa
     legacy: dict = {k: v for k, v in wm.items() if not isinstance(v, dict)}
     for section, values in ((k, v) for k, v in wm.items() if isinstance(v, dict)):
         for name, value in values.items():
+            if section == "reading" and name.startswith("search"):
+                continue  # added after the sections (at their defaults here): no flat file has them
             key = old_names.get(section, "{}").format(name)
             key = {
                 "read_wavelet": "wavelet",

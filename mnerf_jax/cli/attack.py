@@ -9,6 +9,8 @@ import argparse
 import time
 from pathlib import Path
 
+from mnerf_jax.cli import search_options
+
 NAME = "attack"
 HELP = (
     "Score a watermarked run's evaluated renders (the 8-bit PNGs mnerf evaluate saved) under attack: a suite "
@@ -84,6 +86,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--data", type=Path, default=None, help="with --model-suite: the scene directory (default: the run's)"
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the attacks' random parameters")
+    search_options.add_arguments(parser, "every attack is also scored read with a search (the S: columns): ")
     parser.add_argument("--list", action="store_true", help="list the suites and their attacks, and stop")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -121,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         suite=args.suite,
         regen=args.regen,
+        **search_options.of_args(args),
     )
     path = wm_attacks.attacks_path(args.run, args.split, result["suite"])
     plot = attack_report.attacks_plot(path.with_suffix(".png"), {args.run.name: result})

@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
+
+from mnerf_jax.cli import search_options
 
 NAME = "extract"
 HELP = (
@@ -62,6 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="average the decoder's logits over the read windows moved by up to R pixels "
         "((2R + 1)² reads; default: as the run's decoder file records, 0 for others)",
     )
+    search_options.add_arguments(parser, "with --run: ")
     parser.add_argument("--batch", type=int, default=32, help="images per decoder call (32)")
     parser.add_argument("--json", action="store_true", help="one JSON object per image instead of text")
 
@@ -70,6 +74,12 @@ def extract_records(args: argparse.Namespace) -> tuple[list[dict], object]:
     """Decode ``args.images``: one record (path, bits string, logits) per image, and the decoder used."""
     from mnerf_jax.reader import extract, read_window
 
+    if args.search not in (None, "none") or args.search_scales or args.search_degrees:
+        from mnerf_jax.core.errors import MnerfError
+
+        raise MnerfError(
+            "--search needs --run WMRUN: the search keeps the read that best matches one of the run's keys"
+        )
     decoder = extract.resolve_decoder(args.decoder, args.bits)
     # A watermarked run's decoder.npz records the run's read window and jitter; others read the whole image.
     window, background, jitter = read_window.of_metadata(decoder.metadata)
@@ -98,6 +108,12 @@ def identification_line(record: dict[str, Any]) -> str:
         f"p = {record['p_corrected']:.3g} binomial (uncorrected {record['p_value']:.3g}), "
         f"{record['p_corrected_sign_flip']:.3g} sign-flip"
     )
+    if record.get("candidate") and (record["candidate"]["scale"], record["candidate"]["degrees"]) != (1, 0):
+        from mnerf_jax.reader.geometry_search import Candidate
+
+        figures += f", read as {Candidate(**record['candidate']).label}"
+    if record.get("reads", 1) > 1:
+        figures += f", corrected over {record['reads']} reads"
     if record["id"] < 0:
         why = (
             "tie between keys"
@@ -119,8 +135,23 @@ def run_identify(args: argparse.Namespace) -> int:
             "fixes the message length)"
         )
     records = wm_eval.identify_images(
-        args.run, args.images, args.threshold, args.batch, args.test, args.read_jitter
+        args.run,
+        args.images,
+        args.threshold,
+        args.batch,
+        args.test,
+        args.read_jitter,
+        **search_options.of_args(args),
     )
+    first = records[0]
+    if first["min_attainable_p"] >= first["threshold"]:
+        print(
+            f"mnerf extract: note: {first.get('reads', 1)} read(s) × the run's keys put the smallest "
+            f"corrected p-value at {first['min_attainable_p']:.3g}, not below the threshold "
+            f"{first['threshold']:g}: no image can be named (fewer search candidates, or a higher "
+            "--threshold)",
+            file=sys.stderr,
+        )
     if args.json:
         for record in records:
             print(json.dumps({**record, "run": str(args.run)}))

@@ -21,6 +21,7 @@ Perceptual = Literal["watson", "vgg"]
 CleanNegative = Literal["ground_truth", "clean_model"]
 Strength = Literal["low", "medium", "high"]
 IdTest = Literal["binomial", "sign_flip"]
+SearchMode = Literal["none", "scale", "rotation", "geometry"]
 ViewDensity = Literal["angles", "sphere"]
 
 # Variants whose ID enters only the last colour layer through FiLM: a frozen source's samples can be cached.
@@ -169,6 +170,19 @@ class AugmentConfig:
         )
 
 
+def check_search_grid(scales: Any, degrees: Any, prefix: str) -> None:
+    """ConfigError unless ``scales`` are factors in (0, 8] and ``degrees`` angles in [−180, 180], both
+    non-empty (``prefix``: how the message names them, a setting's or an option's stem)."""
+    _require(
+        len(scales) > 0 and all(0.0 < s <= 8.0 for s in scales),
+        f"{prefix}scales are scale factors in (0, 8], got {list(scales)}",
+    )
+    _require(
+        len(degrees) > 0 and all(-180.0 <= d <= 180.0 for d in degrees),
+        f"{prefix}degrees are angles in [-180, 180], got {list(degrees)}",
+    )
+
+
 @dataclasses.dataclass(frozen=True)
 class ReadingConfig:
     """How a render is read and an ID named."""
@@ -182,11 +196,20 @@ class ReadingConfig:
     jitter: int = setting(0, host=True, trajectory=False)
     id_threshold: float = setting(1e-3, host=True, trajectory=False)  # corrected p-value that names an ID
     id_test: IdTest = setting("binomial", host=True, trajectory=False)  # which p-value decides
+    # Read each image again as if rescaled by each of search_scales and/or rotated by each of search_degrees
+    # (undone before the read; reader.geometry_search) and keep the read whose best key has the smallest
+    # p-value, Bonferroni-corrected over candidates × keys.
+    search: SearchMode = setting("none", host=True, trajectory=False)
+    search_scales: tuple[float, ...] = setting((0.5, 0.75, 1.5), host=True, trajectory=False)
+    search_degrees: tuple[float, ...] = setting(
+        (-30.0, -15.0, -5.0, 5.0, 15.0, 30.0), host=True, trajectory=False
+    )
 
     def __post_init__(self) -> None:
         _check_literals(self, "watermark.reading")
         _require(0.0 <= self.window <= 1.0, f"watermark.reading.window must be in [0, 1], got {self.window}")
         _require(self.jitter >= 0, f"watermark.reading.jitter must be ≥ 0, got {self.jitter}")
+        check_search_grid(self.search_scales, self.search_degrees, "watermark.reading.search_")
         _require(
             0.0 < self.id_threshold < 1.0,
             f"watermark.reading.id_threshold must be in (0, 1), got {self.id_threshold}",

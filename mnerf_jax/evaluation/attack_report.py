@@ -44,23 +44,44 @@ def title(result: Mapping[str, Any]) -> str:
 
 def format_table(result: Mapping[str, Any]) -> str:
     """The attacks as a text table: bits mean / worst ID, best match, named, and (with the clean renders)
-    false claims; then the mean over the attacks and the attacks skipped, with why."""
+    false claims; with a geometry search the same read with it (``S:`` columns); then the mean over the
+    attacks and the attacks skipped, with why."""
     claims = bool(result.get("false_claims_measured"))
+    search = result.get("search")
     rows = [(name, result["attacks"][name]) for name in attack_order(result)]
     if result.get("mean_over_attacks"):
-        rows.append(("mean of attacks", result["mean_over_attacks"]))
+        mean = dict(result["mean_over_attacks"])
+        if search and result.get("mean_over_attacks_search"):
+            mean["search"] = result["mean_over_attacks_search"]
+        rows.append(("mean of attacks", mean))
     width = max(18, *(len(name) + 1 for name, _ in rows))
     head = f"{'attack (' + title(result) + ')':<{width}} {'bits':>8} {'worst ID':>9} {'best match':>11}"
-    head += f" {'named':>8}"
-    lines = [head + (f" {'false claims':>13}" if claims else "")]
+    head += f" {'named':>8}" + (f" {'false claims':>13}" if claims else "")
+    if search:
+        head += f" {'S: bits':>8} {'S: best':>8} {'S: named':>9}" + (f" {'S: claims':>10}" if claims else "")
+    lines = [head]
+    nan = float("nan")
     for name, s in rows:
         line = (
             f"{name:<{width}} {s['bit_accuracy_mean']:>8.2%} {s['bit_accuracy_min']:>9.2%} "
             f"{s['identification_accuracy']:>11.2%} {s['verified_identification_accuracy']:>8.2%}"
         )
         if claims:
-            line += f" {s.get('false_claim_rate', float('nan')):>13.2%}"
+            line += f" {s.get('false_claim_rate', nan):>13.2%}"
+        if search:
+            t = s.get("search") or {}
+            line += (
+                f" {t.get('bit_accuracy_mean', nan):>8.2%} {t.get('identification_accuracy', nan):>8.2%}"
+                f" {t.get('verified_identification_accuracy', nan):>9.2%}"
+            )
+            if claims:
+                line += f" {t.get('false_claim_rate', nan):>10.2%}"
         lines.append(line)
+    if search:
+        lines.append(
+            f"S: read with the {search['mode']} search ({search['candidates']} candidates; p-values "
+            "corrected over candidates × keys)"
+        )
     for name, why in (result.get("skipped") or {}).items():
         lines.append(f"{name:<{width}} skipped: {why}")
     return "\n".join(lines)
@@ -78,6 +99,10 @@ def attacks_plot(path: Path, results: Mapping[str, Mapping[str, Any]]) -> Path:
             "mean over IDs": [first["attacks"][k]["bit_accuracy_mean"] for k in names],
             "worst ID": [first["attacks"][k]["bit_accuracy_min"] for k in names],
         }
+        if first.get("search"):
+            bars[f"mean over IDs, {first['search']['mode']} search"] = [
+                first["attacks"][k].get("search", {}).get("bit_accuracy_mean", np.nan) for k in names
+            ]
     else:
         bars = {
             label: [r["attacks"].get(k, {}).get("bit_accuracy_mean", np.nan) for k in names]

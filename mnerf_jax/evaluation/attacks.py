@@ -9,7 +9,9 @@ with the run's decoder (and its read window, which finds the object in an image 
 as evaluation scores the renders: mean and worst-ID bit accuracy, best-matching key right, and named (the
 run's test and threshold). The clean renders meet the same attack (the same seed: the same parameters per
 view) and are scored for false claims: the share of them the decision names as some key. ``"none"`` is the
-PNGs as saved, the row ``eval-<split>.json`` reports as ``bit_accuracy_png_mean``.
+PNGs as saved, the row ``eval-<split>.json`` reports as ``bit_accuracy_png_mean``. With a geometry search
+(``reader.geometry_search``: ``--search``, or the run's ``watermark.reading.search``) every row is also read
+with the search, its p-values corrected over candidates × keys, the clean renders' false claims included.
 
 Reading saved files rather than rendering again keeps this cheap (no field is loaded) and scores exactly the
 images the evaluation scored.
@@ -32,8 +34,9 @@ from mnerf_jax.data.images import to_uint8
 from mnerf_jax.evaluation import watermarked as wm_eval
 from mnerf_jax.imaging import attack_suites, augment
 from mnerf_jax.imaging.attack_suites import Attack
-from mnerf_jax.reader import extract
+from mnerf_jax.reader import extract, geometry_search, read_window
 from mnerf_jax.reader.identification import (
+    Identification,
     bit_accuracy,
     false_detection_summary,
     identify_logits,
@@ -106,13 +109,21 @@ def saved_clean(run_dir: Path, split: str, names: Sequence[str]) -> np.ndarray |
     return _load_pngs(files) if all(f.is_file() for f in files) else None
 
 
-def score(logits: np.ndarray, messages: np.ndarray, threshold: float, test: str) -> dict[str, Any]:
+def score(
+    logits: np.ndarray,
+    messages: np.ndarray,
+    threshold: float,
+    test: str,
+    ident: Identification | None = None,
+) -> dict[str, Any]:
     """Scores of attacked renders' ``logits [N, V, L]`` (ID n's renders in row n) against the keys
-    ``messages [N, L]``: mean and worst-ID bit accuracy, best match right, named right."""
+    ``messages [N, L]``: mean and worst-ID bit accuracy, best match right, named right. ``ident``: their
+    identification when made otherwise (a search's, corrected for its reads; default: of these logits)."""
 
     n, v, bits = logits.shape
     per_id = bit_accuracy(logits_to_bits(logits), messages[:, None]).mean(axis=1)
-    ident = identify_logits(logits.reshape(n * v, bits), messages, threshold, test)
+    if ident is None:
+        ident = identify_logits(logits.reshape(n * v, bits), messages, threshold, test)
     truth = np.repeat(np.arange(n), v)
     return {
         "bit_accuracy_mean": float(per_id.mean()),
@@ -123,10 +134,19 @@ def score(logits: np.ndarray, messages: np.ndarray, threshold: float, test: str)
     }
 
 
-def false_claims(logits: np.ndarray, messages: np.ndarray, threshold: float, test: str) -> dict[str, Any]:
+def false_claims(
+    logits: np.ndarray,
+    messages: np.ndarray,
+    threshold: float,
+    test: str,
+    ident: Identification | None = None,
+) -> dict[str, Any]:
     """How the decision names the clean model's attacked renders ``logits [V, L]``: ``false_claim_rate``
-    (named as any key under ``test``; ``..._by_test``) and ``claimed_per_id [N]``."""
-    summary = false_detection_summary(identify_logits(logits, messages, threshold, test), len(messages))
+    (named as any key under ``test``; ``..._by_test``) and ``claimed_per_id [N]``. ``ident``: as
+    :func:`score`."""
+    if ident is None:
+        ident = identify_logits(logits, messages, threshold, test)
+    summary = false_detection_summary(ident, len(messages))
     return {
         "false_claim_rate": summary["false_detection_rate"],
         "false_claim_rate_by_test": summary["false_detection_rate_by_test"],
@@ -163,9 +183,52 @@ def choose_attacks(
     return attack_suites.resolve(augment.AUGMENTATION_NAMES, strength or "low"), None
 
 
-def _decode(decoder: Any, wm: Any, images: np.ndarray) -> np.ndarray:
-    """Logits ``[B, L]`` of uint8 images ``[B, H, W, 3]`` as the run's decoder reads them."""
-    return wm_eval.decode_renders(decoder, wm, images.astype(np.float32) / np.float32(255.0), batch=32)
+def _read(decoder: Any, wm: Any, images: np.ndarray, search: geometry_search.GeometrySearch) -> np.ndarray:
+    """Logits ``[B, C, L]`` of uint8 images ``[B, H, W, 3]`` as the run's decoder reads them: the search's C
+    candidate reads, the plain read first (C = 1 without a search)."""
+    x = images.astype(np.float32) / np.float32(255.0)
+    if not search.active:
+        return wm_eval.decode_renders(decoder, wm, x, batch=32)[:, None]
+    reading = read_window.of_config(wm.reading)
+    return geometry_search.search_logits(decoder.variables, x, search, decoder.wavelet, 32, *reading)
+
+
+def _scored(
+    reads: np.ndarray,
+    clean: np.ndarray | None,
+    messages: np.ndarray,
+    threshold: float,
+    test: str,
+    search: geometry_search.GeometrySearch,
+) -> dict[str, Any]:
+    """One row: the plain read's scores of ``reads [N, V, C, L]`` (and false claims of the clean renders'
+    ``clean [V, C, L]``), and with a search its scores as ``row["search"]``, with how often each candidate
+    was kept (``candidates_kept``, by label)."""
+    n, v = reads.shape[:2]
+    row = score(reads[:, :, 0], messages, threshold, test)
+    if clean is not None:
+        row.update(false_claims(clean[:, 0], messages, threshold, test))
+    if search.active:
+        kept = geometry_search.identify(
+            reads.reshape(n * v, *reads.shape[2:]), messages, search.candidates(), threshold, test
+        )
+        searched = score(kept.logits.reshape(n, v, -1), messages, threshold, test, kept.identification)
+        labels = [c.label for c in kept.chosen_candidates()]
+        searched["candidates_kept"] = {label: labels.count(label) for label in dict.fromkeys(labels)}
+        if clean is not None:
+            kept_clean = geometry_search.identify(clean, messages, search.candidates(), threshold, test)
+            searched.update(
+                false_claims(kept_clean.logits, messages, threshold, test, kept_clean.identification)
+            )
+        row["search"] = searched
+    return row
+
+
+def _means(rows: Sequence[dict[str, Any]]) -> dict[str, float] | None:
+    """Each of :data:`MEANS`'s scores averaged over ``rows`` (None without rows)."""
+    if not rows:
+        return None
+    return {k: float(np.mean([s[k] for s in rows])) for k in MEANS if k in rows[0]}
 
 
 def evaluate_attacks(
@@ -179,6 +242,9 @@ def evaluate_attacks(
     *,
     suite: str | None = None,
     regen: str | None = None,
+    search: str | None = None,
+    search_scales: tuple[float, ...] | None = None,
+    search_degrees: tuple[float, ...] | None = None,
 ) -> dict[str, Any]:
     """Score a watermarked run's saved evaluation PNGs under each attack (:func:`choose_attacks`); writes
     and returns :func:`attacks_path`'s JSON. ``"none"`` is always scored first; a hook's row runs next, so
@@ -193,6 +259,9 @@ def evaluate_attacks(
     ``attacks`` ``{name: score(...) + family, description, and with the clean renders false_claims(...)}``,
     ``skipped`` ``{name: why}`` (attacks that cannot run here, such as WebP without libwebp),
     ``false_claims_measured`` and ``mean_over_attacks`` (each score's mean over the attacks, "none" left out).
+    ``search`` (default: the run's ``watermark.reading.search``) with its grids: every row is read plainly and
+    with that geometry search (:func:`_scored`; ``search`` then describes it, and ``mean_over_attacks_search``
+    averages the searched rows).
     """
     run_dir = Path(run_dir)
     attacks, label = choose_attacks(suite, names, strength, regen)
@@ -200,6 +269,7 @@ def evaluate_attacks(
     saved = rundir.read_run_config(run_dir).watermark
     rule = decision.decision_rule(run_dir, saved.reading, decoder.fingerprint)
     threshold, test = rule.threshold, rule.test
+    searched = geometry_search.of_config(saved.reading, search, search_scales, search_degrees)
     evaluation, chosen, renders = saved_renders(run_dir, split, views)
     clean = saved_clean(run_dir, split, chosen)
     messages = np.asarray(keys.messages, np.float32)
@@ -224,13 +294,17 @@ def evaluate_attacks(
             # One ID at a time (the augmentations' median filter stacks k² copies of its batch); the same
             # seed for each, so every ID meets the same parameters per view.
             hit = [renders[k] if attack is None else attack(renders[k], seed) for k in range(n)]
-            logits = _decode(decoder, saved, np.concatenate(hit))
-            row = score(logits.reshape(n, v, -1), messages, threshold, test)
+            reads = _read(decoder, saved, np.concatenate(hit), searched)
+            clean_reads = None
+            if clean is not None:
+                clean_reads = _read(
+                    decoder, saved, clean if attack is None else attack(clean, seed), searched
+                )
+            row = _scored(
+                reads.reshape(n, v, *reads.shape[1:]), clean_reads, messages, threshold, test, searched
+            )
             if attack is not None:
                 row.update(family=attack.family, description=attack.description)
-            if clean is not None:
-                hit_clean = clean if attack is None else attack(clean, seed)
-                row.update(false_claims(_decode(decoder, saved, hit_clean), messages, threshold, test))
             rows[name] = row
             if bar is not None:
                 bar.update(1)
@@ -259,11 +333,9 @@ def evaluate_attacks(
         "attacks": rows,
         "skipped": skipped,
         "false_claims_measured": clean is not None,
-        "mean_over_attacks": {
-            k: float(np.mean([s[k] for s in attacked])) for k in MEANS if k in rows[NO_ATTACK]
-        }
-        if attacked
-        else None,
+        "mean_over_attacks": _means(attacked),
+        "search": searched.describe() if searched.active else None,
+        "mean_over_attacks_search": _means([s["search"] for s in attacked]) if searched.active else None,
     }
     rundir.write_json_atomic(attacks_path(run_dir, split, label), result)
     return result

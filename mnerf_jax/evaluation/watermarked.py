@@ -20,7 +20,7 @@ from mnerf_jax.core import rundir
 from mnerf_jax.data import view_indices
 from mnerf_jax.data.images import round_to_8bit, to_uint8
 from mnerf_jax.imaging import metrics
-from mnerf_jax.reader import extract, read_window
+from mnerf_jax.reader import extract, geometry_search, read_window
 from mnerf_jax.reader.identification import (
     bit_accuracy,
     false_detection_summary,
@@ -296,6 +296,9 @@ def identify_images(
     batch_size: int = 32,
     test: str | None = None,
     read_jitter: int | None = None,
+    search: str | None = None,
+    search_scales: tuple[float, ...] | None = None,
+    search_degrees: tuple[float, ...] | None = None,
 ) -> list[dict[str, Any]]:
     """Decode image files with a watermarked run's decoder and identify the ID of each (``mnerf extract
     --run WMRUN IMAGE...``): one record per image with the bits, the best-matching ID, its bit accuracy,
@@ -303,7 +306,11 @@ def identify_images(
     watermark, i.e. the corrected p-value of ``test`` is not below ``threshold``; defaults: the run's
     ``watermark.reading.id_test``, and its calibrated threshold or ``watermark.reading.id_threshold``:
     ``watermark.decision``), the rule's fields (``threshold_source``, ``calibration``) and its description
-    (``decision_rule``). ``read_jitter``: as in :func:`evaluate_watermarked_run`.
+    (``decision_rule``). ``read_jitter``: as in :func:`evaluate_watermarked_run`. ``search`` (``none``,
+    ``scale``, ``rotation``, ``geometry``; default the run's ``watermark.reading.search``) with its grids:
+    each image is read under every candidate transform undone and the best-supported read is kept
+    (``reader.geometry_search``; its p-values corrected over candidates × keys; the record names the
+    ``candidate`` and counts the ``reads``).
 
     Only the run's keys, decoder and config are read (not its field checkpoint).
     """
@@ -312,12 +319,21 @@ def identify_images(
     saved = with_read_jitter(rundir.read_run_config(run_dir).watermark, read_jitter)
     rule = decision.decision_rule(run_dir, saved.reading, decoder.fingerprint, threshold, test)
     thr, test = rule.threshold, rule.test
-    logits = extract.decode_paths(
-        decoder.variables, paths, decoder.wavelet, batch_size, *read_window.of_config(saved.reading)
-    )
-    ident = identify_logits(logits, keys.messages, thr, test)
-    return [
-        {
+    searched = geometry_search.of_config(saved.reading, search, search_scales, search_degrees)
+    reading = read_window.of_config(saved.reading)
+    chosen: list[geometry_search.Candidate] = []
+    if searched.active:
+        every = geometry_search.search_paths(
+            decoder.variables, paths, searched, decoder.wavelet, batch_size, *reading
+        )
+        kept = geometry_search.identify(every, keys.messages, searched.candidates(), thr, test)
+        logits, ident, chosen = kept.logits, kept.identification, kept.chosen_candidates()
+    else:
+        logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, batch_size, *reading)
+        ident = identify_logits(logits, keys.messages, thr, test)
+    records = []
+    for i, (p, row) in enumerate(zip(paths, logits, strict=True)):
+        record = {
             "image": str(p),
             "bits": "".join(str(int(b)) for b in logits_to_bits(row)),
             "best_id": int(ident.best_id[i]),
@@ -329,6 +345,10 @@ def identify_images(
             "id": int(ident.decision[i]),
             **rule.as_record(),
             "decision_rule": rule.describe(),
+            "min_attainable_p": ident.min_attainable_p,
+            "search": searched.mode,
         }
-        for i, (p, row) in enumerate(zip(paths, logits, strict=True))
-    ]
+        if searched.active:
+            record.update(candidate=chosen[i].to_dict(), reads=ident.reads)
+        records.append(record)
+    return records

@@ -17,7 +17,8 @@ picking it by soft correlation keeps the bound). The decision rule: report the b
 ``p_N < threshold`` (default :data:`DEFAULT_THRESHOLD` = 1e-3, i.e. at most one false claim per thousand
 unwatermarked images while the decoder does not know the keys; one fine-tuned with them in phase 2 can claim
 more, which evaluation measures on the clean renders), otherwise "no watermark" (ID −1). A tie between two
-keys at the best score is undecided (−1) too.
+keys at the best score is undecided (−1) too. An image read C times (a geometry search's candidates,
+:func:`identify_best_read`) keeps its best (read, key) pair, corrected over the C·N pairs: ``min(1, C·N·p)``.
 
 The decision may use the sign-flip test instead (``test="sign_flip"``, `significance.py`): the same null
 hypothesis, the agreement weighted by each bit's confidence, so a match wrong only in its most doubtful bits
@@ -68,10 +69,13 @@ class Identification:
     agreement [B]               agreeing bits with that key
     bit_accuracy [B]            agreement / L
     p_value [B]                 binomial: P[Bin(L, ½) ≥ agreement]
-    p_corrected [B]             min(1, N·p_value)
+    p_corrected [B]             min(1, C·N·p_value)
     p_value_sign_flip [B]       the sign-flip test's p-value of the same match (significance.py)
-    p_corrected_sign_flip [B]   min(1, N·p_value_sign_flip)
+    p_corrected_sign_flip [B]   min(1, C·N·p_value_sign_flip)
     decision [B]                best_id where ``test``'s corrected p-value < threshold, else −1 (no watermark)
+
+    ``reads`` (C, default 1): how many reads of each image the match was chosen among by its p-value
+    (:func:`identify_best_read`, a geometry search's candidates); Bonferroni then corrects over C·N pairs.
     """
 
     best_id: np.ndarray
@@ -82,22 +86,28 @@ class Identification:
     test: str
     bits: int
     num_ids: int
+    reads: int = 1
 
     @property
     def bit_accuracy(self) -> np.ndarray:
         return self.agreement / self.bits
 
     @property
+    def comparisons(self) -> int:
+        """The (read, key) pairs the best match was chosen among: the Bonferroni factor C·N."""
+        return self.reads * self.num_ids
+
+    @property
     def p_corrected(self) -> np.ndarray:
-        return np.minimum(1.0, self.num_ids * self.p_value)
+        return np.minimum(1.0, self.comparisons * self.p_value)
 
     @property
     def p_corrected_sign_flip(self) -> np.ndarray:
-        return np.minimum(1.0, self.num_ids * self.p_value_sign_flip)
+        return np.minimum(1.0, self.comparisons * self.p_value_sign_flip)
 
     @property
     def min_attainable_p(self) -> float:
-        return min(1.0, self.num_ids / float(1 << self.bits))
+        return min(1.0, self.comparisons / float(1 << self.bits))
 
     @property
     def decision(self) -> np.ndarray:
@@ -143,6 +153,52 @@ def identify_logits(
     agree = _agreement(logits_to_bits(logits), messages)
     signs = 2.0 * messages.astype(np.float64) - 1.0
     return _identification(logits @ signs.T, agree, logits, messages, threshold, test)
+
+
+def identify_best_read(
+    logits: np.ndarray, messages: np.ndarray, threshold: float = DEFAULT_THRESHOLD, test: str = "binomial"
+) -> tuple[Identification, np.ndarray]:
+    """The best-supported (read, key) pair of each image among ``C`` reads of it, and the read chosen.
+
+    Each read is matched as :func:`identify_logits` does; the read kept is the one whose best match has the
+    smallest p-value under ``test`` (then under the other test; a tie between keys counts last; then the
+    first read). Under "no watermark" each read's p-value is valid for each key, so the smallest over
+    C·N pairs is below ``t`` with probability at most ``C·N·t`` (Bonferroni, whatever the reads'
+    dependence): the result's ``reads`` = C puts that factor into every corrected p-value.
+
+    Args:
+      logits: ``[B, C, L]`` decoder logits of C reads of each of B images.
+      messages: ``[N, L]`` keys.
+      threshold, test: as :func:`identify_logits`.
+
+    Returns:
+      ``(identification of the chosen reads [B], chosen read per image [B] int64)``.
+    """
+    logits = np.asarray(logits, np.float64)
+    if logits.ndim != 3:
+        raise ValueError(f"expected logits [B, C, L] of C reads per image, got shape {logits.shape}")
+    b, c, bits = logits.shape
+    every = identify_logits(logits.reshape(b * c, bits), messages, threshold, test)
+    first, second = (
+        (every.p_value, every.p_value_sign_flip)
+        if significance.check_test(test) == "binomial"
+        else (every.p_value_sign_flip, every.p_value)
+    )
+    image, read = np.repeat(np.arange(b), c), np.tile(np.arange(c), b)
+    # np.lexsort sorts by its last key first: by image, then the smallest p, the other test's, a tie between
+    # keys last, the read's order; each image's C rows stay together, its chosen one first.
+    ranked = np.lexsort((read, every.best_id < 0, second, first, image))
+    chosen = read[ranked[::c]].astype(np.int64)
+    pick = ranked[::c]
+    ident = dataclasses.replace(
+        every,
+        best_id=every.best_id[pick],
+        agreement=every.agreement[pick],
+        p_value=every.p_value[pick],
+        p_value_sign_flip=every.p_value_sign_flip[pick],
+        reads=c,
+    )
+    return ident, chosen
 
 
 def _agreement(bits: np.ndarray, messages: np.ndarray) -> np.ndarray:
