@@ -72,6 +72,7 @@ XDIST_GROUPS = {
     "test_embed.py": "tiny-watermarked",
     "test_wm_eval.py": "tiny-watermarked",
     "test_wm_cli.py": "tiny-watermarked",
+    "test_study.py": "tiny-watermarked",
     "test_cli.py": "tiny-schedule",
     "test_train.py": "tiny-schedule",
 }
