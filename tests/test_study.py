@@ -189,6 +189,12 @@ def test_dry_run_lists_the_cells_and_their_cost_without_running(tmp_path: Path, 
     assert code == 2 and "no cell" in err
 
 
+def test_no_figure_of_the_table_takes_a_settings_name() -> None:
+    figures = {*results.FIGURE_COLUMNS, *results.MACHINE_COLUMNS, *results.PAPER_COLUMNS, "id_test"}
+    assert not (set(results.SETTING_COLUMNS) - {"views"}) & figures
+    assert set(results.evaluation_figures({})) <= figures | {"views"}
+
+
 def test_the_papers_numbers_match_the_rows_they_stand_beside() -> None:
     figures = paper_numbers.figures()
     assert {f.table for f in figures} >= {
@@ -205,18 +211,19 @@ def test_the_papers_numbers_match_the_rows_they_stand_beside() -> None:
         "noised": True,
     }
     found = paper_numbers.match(row)
-    assert found["bits"].value == pytest.approx(0.8279) and found["bits"].table == "tab:ablation"
+    assert found["bit_acc"].value == pytest.approx(0.8279) and found["bit_acc"].table == "tab:ablation"
     assert found["params_m"].value == 19.98 and found["size_mb_source"].value == 68.6
-    assert paper_numbers.match({**row, "wmcom": 24})["bits"].value == pytest.approx(0.8566)
+    assert paper_numbers.match({**row, "wmcom": 24})["bit_acc"].value == pytest.approx(0.8566)
     # No lego figure for 8 bits: the SYN average of the bit-length table.
-    assert paper_numbers.match({**row, "bits": 8})["bits"].table == "tab:ablation_bit_length_sclable"
+    assert paper_numbers.match({**row, "bits": 8})["bit_acc"].table == "tab:ablation_bit_length_sclable"
     single = {**row, "num_ids": 1, "bits": 48, "noised": False}
-    assert paper_numbers.match(single)["bits"].value == pytest.approx(0.9486)
+    assert paper_numbers.match(single)["bit_acc"].value == pytest.approx(0.9486)
     assert (
-        paper_numbers.match({**single, "paper_scene": "ficus", "variant": "waterf"})["bits"].value == 0.7983
+        paper_numbers.match({**single, "paper_scene": "ficus", "variant": "waterf"})["bit_acc"].value
+        == 0.7983
     )
     assert paper_numbers.match({**row, "paper_scene": None}) == {}
-    assert paper_numbers.match({**row, "variant": "no_grid"})["bits"].value == pytest.approx(0.516)
+    assert paper_numbers.match({**row, "variant": "no_grid"})["bit_acc"].value == pytest.approx(0.516)
 
 
 # ---------------------------------------------------------------------------------------- end to end
@@ -319,11 +326,14 @@ def test_a_study_end_to_end_records_failures_and_resumes_after_a_kill(
     assert figures(rows[3]) == figures(ref_rows[3])
 
     done = rows[2]
-    assert done["bits"] is not None and done["psnr_drop"] is not None and done["named"] is not None
-    assert done["attack_low_gaussian_blur_bits"] is not None and done["attack_low_bits"] is not None
+    assert (done["num_ids"], done["bits"], done["seed"], done["variant"]) == (2, 8, 0, "multinerf")
+    assert 0 <= done["bit_acc"] <= 1 and done["psnr_drop"] is not None and done["named"] is not None
+    assert done["attack_low_gaussian_blur_bit_acc"] is not None and done["attack_low_bit_acc"] is not None
     assert 0 < done["params_m_watermark"] < done["params_m"] and done["size_mb"] > done["size_mb_watermark"]
     assert done["embed_steps"] == 6 and done["views"] == 2 and done["wall_s"] > 0 and done["peak_rss_mb"] > 0
-    assert done["wmcom"] == 4 and done["noised"] is True and done["paper_bits"] is None
+    assert done["wmcom"] == 4 and done["noised"] is True and done["paper_bit_acc"] is None
+    assert rows[0]["bits"] == 12 and rows[0]["bit_acc"] is None
     header = (study / "results.csv").read_text().splitlines()[0].split(",")
     assert header[:3] == ["study", "cell_id", "status"] and "attack_low_named" in header
+    assert len(header) == len(set(header))
     assert first in (study / "results.md").read_text()

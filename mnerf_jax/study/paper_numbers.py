@@ -58,7 +58,7 @@ def _figures_of(block: Mapping[str, Any]) -> list[PaperFigure]:
             if math.isnan(value):
                 continue
             metric = block["metric"] if by_scene else column
-            scale = 0.01 if metric.startswith("bits") else 1.0
+            scale = 0.01 if metric.startswith("bit_acc") else 1.0
             out.append(
                 PaperFigure(
                     table=block["id"],

@@ -22,8 +22,9 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from mnerf_jax.core import config as config_lib
 from mnerf_jax.core import rundir
-from mnerf_jax.core.errors import ConfigError, MnerfError
+from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.evaluation import compare
 from mnerf_jax.study import grid, paper_numbers
 from mnerf_jax.study.spec import StudySpec
@@ -33,6 +34,7 @@ FITS_DIR = "fits"
 RESULT_FILE = "result.json"
 ERROR_FILE = "error.json"
 TABLE_NAMES = ("results.json", "results.csv", "results.md")
+MIB = float(2**20)
 
 SETTING_COLUMNS = (
     "study",
@@ -82,9 +84,9 @@ EVALUATION_EXTRAS = {
     "views": "views",
 }
 FIGURE_COLUMNS = (
-    "bits",
-    "bits_png",
-    "bits_worst_id",
+    "bit_acc",
+    "bit_acc_png",
+    "bit_acc_worst_id",
     "best_match",
     "best_match_png",
     "best_match_hard",
@@ -116,6 +118,7 @@ FIGURE_COLUMNS = (
     "size_mb_watermark",
     "size_mb_source",
     "embed_steps",
+    "embed_stopped_by_budget",
 )
 # What the machine measures (times, memory): equal runs differ here and nowhere else.
 MACHINE_COLUMNS = (
@@ -128,7 +131,7 @@ MACHINE_COLUMNS = (
     "peak_rss_before_mb",
 )
 PAPER_METRICS = (
-    "bits",
+    "bit_acc",
     "psnr",
     "ssim",
     "lpips",
@@ -140,19 +143,38 @@ PAPER_METRICS = (
 )
 PAPER_COLUMNS = (*(f"paper_{m}" for m in PAPER_METRICS), "paper_tables", "paper_approx")
 ATTACK_FIGURES = {
-    "bits": "bit_accuracy_mean",
-    "bits_worst_id": "bit_accuracy_min",
+    "bit_acc": "bit_accuracy_mean",
+    "bit_acc_worst_id": "bit_accuracy_min",
     "best_match": "identification_accuracy",
     "named": "verified_identification_accuracy",
 }
 
 
+# mnerf compare's names of the bit accuracies; here ``bits`` is the message length, a setting.
+RENAMED = {"bits": "bit_acc", "bits_png": "bit_acc_png", "bits_worst_id": "bit_acc_worst_id"}
+
+
 def evaluation_figures(result: Mapping[str, Any]) -> dict[str, Any]:
     """A results row's figures of one ``eval-<split>.json`` dict (``evaluate_watermarked_run``)."""
-    figures: dict[str, Any] = dict(compare.figures_of(result))
+    figures: dict[str, Any] = {RENAMED.get(k, k): v for k, v in compare.figures_of(result).items()}
     figures.update({name: result.get(key) for name, key in EVALUATION_EXTRAS.items()})
     figures["id_test"] = (result.get("identification") or {}).get("test")
     return figures
+
+
+def param_columns(counts: Mapping[str, int]) -> dict[str, float]:
+    """Parameter counts (millions) and float32 sizes (MiB) from ``runner.param_counts``: the whole
+    watermarked run, its watermark part and the TensoRF's (the rest)."""
+    whole, whole_bytes = counts["count"], counts["bytes"]
+    wm, wm_bytes = counts["watermark_count"], counts["watermark_bytes"]
+    return {
+        "params_m": whole / 1e6,
+        "params_m_watermark": wm / 1e6,
+        "params_m_source": (whole - wm) / 1e6,
+        "size_mb": whole_bytes / MIB,
+        "size_mb_watermark": wm_bytes / MIB,
+        "size_mb_source": (whole_bytes - wm_bytes) / MIB,
+    }
 
 
 def attack_figures(suite: str, result: Mapping[str, Any]) -> dict[str, Any]:
@@ -162,7 +184,7 @@ def attack_figures(suite: str, result: Mapping[str, Any]) -> dict[str, Any]:
     for name, key in ATTACK_FIGURES.items():
         out[f"attack_{suite}_{name}"] = mean.get(key)
     for attack, scores in (result.get("attacks") or {}).items():
-        out[f"attack_{suite}_{attack}_bits"] = scores.get("bit_accuracy_mean")
+        out[f"attack_{suite}_{attack}_bit_acc"] = scores.get("bit_accuracy_mean")
         out[f"attack_{suite}_{attack}_named"] = scores.get("verified_identification_accuracy")
     return out
 
@@ -218,7 +240,15 @@ def _resolved(cell: grid.Cell, fits: dict[str, Any]) -> dict[str, Any]:
         if key not in fits:
             fits[key] = grid.fit_config(cell.scene)
         return grid.resolved_settings(grid.embed_config(cell, fits[key]))
-    except (ConfigError, MnerfError):
+    except MnerfError:
+        return {}
+
+
+def _embedded_settings(config: Mapping[str, Any]) -> dict[str, Any]:
+    """The resolved settings of the config an embedding recorded (empty for one this version cannot read)."""
+    try:
+        return grid.resolved_settings(config_lib.from_dict(config))
+    except MnerfError:
         return {}
 
 
@@ -235,10 +265,11 @@ def row(spec: StudySpec, cell: grid.Cell, out: Path, fits: dict[str, Any] | None
         embed, evaluate = result["embed"], result["evaluate"]
         attacks = result.get("attacks", {})
         values["status"] = "done"
-        values.update(embed.get("resolved", {}))
-        values.update(evaluate.get("figures", {}))
-        values.update(embed.get("params", {}))
+        values.update(_embedded_settings(embed["config"]))
+        values.update(evaluation_figures(evaluate["result"]))
+        values.update(param_columns(embed["params"]))
         values["embed_steps"] = embed.get("steps")
+        values["embed_stopped_by_budget"] = embed.get("stopped_by_budget")
         for suite, record in attacks.items():
             values.update(attack_figures(suite, record))
         times = {
@@ -262,7 +293,7 @@ def row(spec: StudySpec, cell: grid.Cell, out: Path, fits: dict[str, Any] | None
 def columns_of(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     """Every column of ``rows``: the fixed ones in order, then attack columns as they first appear, error."""
     fixed = [*SETTING_COLUMNS, *FIGURE_COLUMNS, "id_test", *MACHINE_COLUMNS]
-    extra = [k for r in rows for k in r if k.startswith("attack_")]
+    extra = [k for r in rows for k in r if k.startswith("attack_") and k not in fixed]
     attack = list(dict.fromkeys(extra))
     return [*fixed, *attack, *PAPER_COLUMNS, "error"]
 
@@ -305,7 +336,7 @@ def _beside(r: Mapping[str, Any], metric: str, kind: str) -> str:
 
 def to_markdown(spec: StudySpec, rows: Sequence[Mapping[str, Any]]) -> str:
     """A short report: every cell's main figures, the paper's in brackets where it has one."""
-    head = ["cell", "status", "bits (paper)", "PNG", "worst ID", "named", "clean claimed", "PSNR (paper)"]
+    head = ["cell", "status", "bit acc. (paper)", "PNG", "worst ID", "named", "clean claimed", "PSNR (paper)"]
     head += ["ΔPSNR", "SSIM (paper)", "LPIPS (paper)", "params M (paper)", "paper tables"]
     lines = [
         f"# Study {spec.name}",
@@ -320,9 +351,9 @@ def to_markdown(spec: StudySpec, rows: Sequence[Mapping[str, Any]]) -> str:
         cells = [
             f"`{r['cell_id']}`",
             r["status"],
-            _beside(r, "bits", "pct"),
-            _show(r.get("bits_png"), "pct"),
-            _show(r.get("bits_worst_id"), "pct"),
+            _beside(r, "bit_acc", "pct"),
+            _show(r.get("bit_acc_png"), "pct"),
+            _show(r.get("bit_acc_worst_id"), "pct"),
             _show(r.get("named"), "pct"),
             _show(r.get("clean_claimed"), "pct"),
             _beside(r, "psnr", "num"),
@@ -344,6 +375,8 @@ def write_tables(spec: StudySpec, out: Path) -> list[dict[str, Any]]:
     """Rebuild every cell's row of ``spec`` from ``out``, write the three tables; returns the rows."""
     fits: dict[str, Any] = {}
     rows = [row(spec, cell, out, fits) for cell in grid.expand(spec)]
+    columns = columns_of(rows)
+    rows = [{c: r.get(c) for c in columns} for r in rows]  # tidy: every row has every column
     rundir.write_json_atomic(out / "results.json", rows)
     _write_atomic(out / "results.csv", to_csv(rows))
     _write_atomic(out / "results.md", to_markdown(spec, rows))

@@ -53,7 +53,6 @@ from mnerf_jax.watermark import run as wm_run
 STUDY_FILE = "study.json"
 STUDY_KIND = "study"
 FIT_DONE = "metrics.json"  # written by fit_run at its end
-MIB = float(2**20)
 
 # (config, scene folder or None, run folder, resume, quiet) -> None: the command line's ``fit_run``, handed
 # down so that this layer needs nothing from the one above it.
@@ -79,12 +78,12 @@ class StudySummary:
 def peak_rss_mb() -> float:
     """The process's peak resident set so far in MiB (Linux reports KiB, macOS bytes)."""
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return round(peak / (MIB if sys.platform == "darwin" else 1024.0), 1)
+    return round(peak / (2.0**20 if sys.platform == "darwin" else 1024.0), 1)
 
 
-def param_figures(params: Mapping[str, Any]) -> dict[str, float]:
-    """Parameter counts (millions) and float32 sizes (MiB) of a watermarked run's params: the whole, the
-    watermark's part (``params["wm"]`` and the colour MLP's extra rows) and the TensoRF's (the rest)."""
+def param_counts(params: Mapping[str, Any]) -> dict[str, int]:
+    """Parameter counts and bytes of a watermarked run's params: the whole, and the watermark's part
+    (``params["wm"]`` and the colour MLP's extra rows); the TensoRF's is the rest."""
 
     def count(tree: Any) -> tuple[int, int]:
         leaves = jax.tree.leaves(tree)
@@ -94,14 +93,7 @@ def param_figures(params: Mapping[str, Any]) -> dict[str, float]:
     mlp = params.get("mlp", {})
     extra = {k: mlp[k] for k in ("out_extra", "in_extra") if k in mlp}
     wm, wm_bytes = count({"wm": params.get("wm", {}), "extra": extra})
-    return {
-        "params_m": whole / 1e6,
-        "params_m_watermark": wm / 1e6,
-        "params_m_source": (whole - wm) / 1e6,
-        "size_mb": whole_bytes / MIB,
-        "size_mb_watermark": wm_bytes / MIB,
-        "size_mb_source": (whole_bytes - wm_bytes) / MIB,
-    }
+    return {"count": whole, "bytes": whole_bytes, "watermark_count": wm, "watermark_bytes": wm_bytes}
 
 
 def _plain(value: Any) -> Any:
@@ -172,7 +164,7 @@ def ensure_fit(ctx: _Context, cell: grid.Cell) -> tuple[Path, dict[str, Any]]:
                 ctx.fit_scene(grid.fit_config(scene), scene.data_path(), folder, resume, not ctx.progress)
             except Exception as err:
                 ctx.fit_errors[key] = _one_line(err)
-                raise
+                raise MnerfError(f"the fit of scene {scene.name} failed: {ctx.fit_errors[key]}") from err
     metrics = results.read_json(folder / FIT_DONE) or {}
     return folder, {"fit_id": key, "seconds": metrics.get("train_seconds")}
 
@@ -195,8 +187,8 @@ def _embed(ctx: _Context, cell: grid.Cell, source: Path, wm_dir: Path) -> dict[s
     return {
         "steps": result.steps,
         "stopped_by_budget": result.stopped_by_budget,
-        "params": param_figures(params),
-        "resolved": grid.resolved_settings(rundir.read_run_config(wm_dir)),
+        "params": param_counts(params),
+        "config": rundir.read_run_config(wm_dir).to_dict(),  # the config the embedding ran with
     }
 
 
@@ -205,7 +197,7 @@ def _evaluate(ctx: _Context, wm_dir: Path) -> dict[str, Any]:
     result = wm_eval.evaluate_watermarked_run(
         wm_dir, m.split, max_views=m.views or None, lpips_net=m.lpips, progress=ctx.progress
     )
-    return {"figures": results.evaluation_figures(result)}
+    return {"result": {k: v for k, v in result.items() if k not in ("per_id", "view_names")}}
 
 
 def _attack(ctx: _Context, wm_dir: Path, suite: str) -> dict[str, Any]:
@@ -240,10 +232,11 @@ def run_cell(ctx: _Context, cell: grid.Cell) -> dict[str, Any]:
     evaluate = stage(
         folder,
         "evaluate",
-        {"split": m.split, "views": m.views, "lpips": m.lpips},
+        {"split": m.split, "views": m.views, "lpips": m.lpips, "embed_steps": embed["steps"]},
         lambda: _evaluate(ctx, wm_dir),
     )
     attack_settings = {
+        "embed_steps": embed["steps"],
         "split": m.split,
         "names": m.attack_names,
         "views": m.attack_views,

@@ -57,12 +57,13 @@ from mnerf_jax.core import config as config_lib
 from mnerf_jax.core.errors import ConfigError, MnerfError
 from mnerf_jax.core.watermark_config import Variant
 from mnerf_jax.imaging import augment
+from mnerf_jax.reader import decoder_io
 from mnerf_jax.study import paper_numbers
 
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9_-]+$")
 SPLITS = ("test", "val", "train")
 LPIPS_NETS = ("alex", "vgg")
-FRESH = "fresh"  # decoder_io.FRESH: a random-init decoder trained with the field
+FRESH = decoder_io.FRESH  # a random-init decoder, trained with the field
 
 
 class StudySpecError(MnerfError):
