@@ -189,6 +189,34 @@ def test_dry_run_lists_the_cells_and_their_cost_without_running(tmp_path: Path, 
     assert code == 2 and "no cell" in err
 
 
+def test_a_failure_is_recorded_in_one_line_and_the_folder_is_checked(tmp_path: Path) -> None:
+    from mnerf_jax.study import runner
+
+    spec = load_spec(write_spec(tmp_path, SPEC))
+    cell = grid.expand(spec)[0]
+    out = tmp_path / "study"
+    try:
+        raise ValueError("a bad\nvalue")
+    except ValueError as err:
+        assert runner.record_failure(out, cell, err) == "ValueError: a bad value"
+    error = json.loads((out / "cells" / cell.id / "error.json").read_text())
+    assert error["type"] == "ValueError" and "Traceback" in error["traceback"]
+    row = results.row(spec, cell, out)
+    assert row["status"] == "failed" and row["error"] == "ValueError: a bad value"
+    # Resolved from the spec: the procedural preset's [watermark] section the fit records.
+    assert (row["wm_ranks"], row["phase1_steps"], row["cache_source"]) == ("8,8,8", 100, True)
+    with pytest.raises(runner.StudyError, match="holds no study"):
+        runner.prepare_study_dir(out, spec, join=True)
+    fresh = tmp_path / "fresh"
+    runner.prepare_study_dir(fresh, spec, join=False)
+    with pytest.raises(runner.StudyError, match="pass --resume"):
+        runner.prepare_study_dir(fresh, spec, join=False)
+    runner.prepare_study_dir(fresh, spec, join=True)
+    other = load_spec(write_spec(tmp_path / "other", SPEC.replace('name = "unit"', 'name = "other"')))
+    with pytest.raises(runner.StudyError, match="holds study 'unit', not 'other'"):
+        runner.prepare_study_dir(fresh, other, join=True)
+
+
 def test_no_figure_of_the_table_takes_a_settings_name() -> None:
     figures = {*results.FIGURE_COLUMNS, *results.MACHINE_COLUMNS, *results.PAPER_COLUMNS, "id_test"}
     assert not (set(results.SETTING_COLUMNS) - {"views"}) & figures
