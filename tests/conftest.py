@@ -74,6 +74,7 @@ XDIST_GROUPS = {
     "test_wm_cli.py": "tiny-watermarked",
     "test_model_attacks.py": "tiny-watermarked",
     "test_false_claims.py": "tiny-watermarked",
+    "test_study.py": "tiny-watermarked",
     "test_cli.py": "tiny-schedule",
     "test_train.py": "tiny-schedule",
 }

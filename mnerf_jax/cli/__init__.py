@@ -21,6 +21,7 @@ COMMAND_MODULES: dict[str, str] = {
     "extract": "mnerf_jax.cli.extract",
     "embed": "mnerf_jax.cli.embed",
     "compare": "mnerf_jax.cli.compare",
+    "study": "mnerf_jax.cli.study",
 }
 
 
