@@ -160,6 +160,7 @@ def test_extract_with_a_run_decoder_file_reads_its_recorded_window(make_decoder,
 
     import imageio.v3 as iio
 
+    from mnerf_jax import cli
     from mnerf_jax.cli import extract as extract_cmd
     from mnerf_jax.reader import decoder_io, extract
 
@@ -170,8 +171,9 @@ def test_extract_with_a_run_decoder_file_reads_its_recorded_window(make_decoder,
     )
     image = (object_on_white(30, 2)[0] * 255).astype(np.uint8)
     iio.imwrite(tmp_path / "view.png", image)
-    args = argparse.Namespace(
-        images=[tmp_path / "view.png"], decoder=path, bits=None, batch=4, read_jitter=None
+    # The command's own parser, so the arguments are those a user gives.
+    args = cli.build_parser("extract").parse_args(
+        ["extract", str(tmp_path / "view.png"), "--decoder", str(path)]
     )
     records, _ = extract_cmd.extract_records(args)
     want = extract.decode(plain.variables, image[None], plain.wavelet, window=0.5, jitter=1)[0]
