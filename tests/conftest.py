@@ -31,6 +31,11 @@ if _OPT_LEVELS_ENV not in os.environ:
     if os.environ[_OPT_LEVELS_ENV] == "1":
         os.environ["XLA_FLAGS"] = f"{_flags} --{OPT_LEVEL_FLAG}=0".strip()
 SET_OPT_LEVELS = os.environ[_OPT_LEVELS_ENV] == "1"
+# Under pytest-xdist every worker has a core of its own: without this, each worker's XLA runs its Eigen
+# kernels on a pool as wide as the machine, and the workers' threads contend for the same cores.
+EIGEN_THREADS_FLAG = "xla_cpu_multi_thread_eigen"
+if os.environ.get("PYTEST_XDIST_WORKER") and EIGEN_THREADS_FLAG not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --{EIGEN_THREADS_FLAG}=false".strip()
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("MNERF_SHARED_DATA", PROJECT_ROOT.parent / "shared" / "data"))
