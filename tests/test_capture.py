@@ -335,3 +335,14 @@ def test_auto_orientation_and_the_capture_preset(tmp_path):
     (tmp_path / "transforms.json").write_text("{}")
     assert choose_preset(None, tmp_path) == "capture"
     assert RenderConfig().near == 2.0  # the blender default, which a normalised capture must not use
+
+
+def test_a_near_plane_beyond_the_centre_of_a_normalised_capture_is_warned_of(made_capture):
+    root, _ = made_capture
+    config = DataConfig(dataset="nerfstudio", orientation="up")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DataWarning)
+        load_scene(root, config, RenderConfig(), ("train",), max_views=2)  # the Blender near of 2
+        load_scene(root, config, RenderConfig(near=0.05, far=6.0), ("train",), max_views=2)
+    near_warnings = [w for w in caught if "render.near" in str(w.message)]
+    assert len(near_warnings) == 1 and "render.near = 2 " in str(near_warnings[0].message)

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -13,7 +15,7 @@ from mnerf_jax.data.blender import load_blender
 from mnerf_jax.data.llff import NDC_AABB, NDC_NEAR_FAR, load_llff
 from mnerf_jax.data.nerfstudio import CAPTURE_AABB, CAPTURE_NEAR_FAR, load_nerfstudio
 from mnerf_jax.data.procedural import procedural_scene_dir
-from mnerf_jax.data.types import DataError, Scene
+from mnerf_jax.data.types import DataError, DataWarning, Scene
 
 DATASETS = ("auto", "blender", "llff", "nerfstudio", "procedural")
 _MARKERS = (
@@ -100,6 +102,8 @@ def load_scene(
         elif transform is not None and render_cfg is None:
             aabb = np.asarray(CAPTURE_AABB, np.float32)
             near, far = CAPTURE_NEAR_FAR
+        if transform is not None:
+            _warn_if_near_passes_the_centre(loaded, near)
     else:
         loaded, ndc_space, depth_bounds = load_llff(
             root,
@@ -137,3 +141,19 @@ def load_scene(
         root=root,
         transform=transform,
     )
+
+
+def _warn_if_near_passes_the_centre(splits: dict[str, Any], near: float) -> None:
+    """One warning when a normalised capture's rays start beyond the scene's centre for most cameras (a
+    preset's near plane kept from a scene of another scale: the object at the origin would not be seen).
+    Cameras at the centre itself (a single frame, say) leave nothing to judge."""
+    centres = np.concatenate([split.cameras.centres for split in splits.values()])
+    typical = float(np.median(np.linalg.norm(centres, axis=-1)))
+    if typical > 1e-6 and near >= typical:
+        warnings.warn(
+            f"render.near = {near:g} is at least the cameras' typical distance to the normalised capture's "
+            f"centre ({typical:.2f}): rays start past the object; the capture preset's near is "
+            f"{CAPTURE_NEAR_FAR[0]:g}",
+            DataWarning,
+            stacklevel=3,
+        )
