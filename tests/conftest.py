@@ -200,6 +200,24 @@ TINY_EMBED = [
 ]
 
 
+# Figures every watermarked evaluation writes to eval-<split>.json (test_wm_cli, test_wm_eval).
+EVALUATION_KEYS = (
+    "bit_accuracy_mean",
+    "bit_accuracy_min",
+    "bit_accuracy_png_mean",
+    "psnr",
+    "psnr_clean_model",
+    "ssim",
+    "lpips",
+    "identification_accuracy",
+    "clean_bit_accuracy",
+    "num_ids",
+    "bits",
+    "split",
+    "views",
+)
+
+
 @dataclasses.dataclass(frozen=True)
 class TinyRuns:
     """``fit``: a fitted 32-px procedural TensoRF; ``decoder``: a random 8-bit decoder file; ``wm``: a 2-ID ×

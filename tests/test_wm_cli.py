@@ -16,27 +16,12 @@ from typing import TYPE_CHECKING
 import imageio.v3 as iio
 import numpy as np
 import pytest
+from conftest import EVALUATION_KEYS
 
 from mnerf_jax.core.errors import MnerfError
 
 if TYPE_CHECKING:
     from conftest import TinyRuns
-
-EVAL_KEYS = (
-    "bit_accuracy_mean",
-    "bit_accuracy_min",
-    "bit_accuracy_png_mean",
-    "psnr",
-    "psnr_clean_model",
-    "ssim",
-    "lpips",
-    "identification_accuracy",
-    "clean_bit_accuracy",
-    "num_ids",
-    "bits",
-    "split",
-    "views",
-)
 
 
 def _one_error_line(err: str, needle: str) -> None:
@@ -133,7 +118,7 @@ def test_evaluate_watermarked_run(tiny: TinyRuns, tmp_path: Path, mnerf) -> None
     assert code == 0
     saved = json.loads((wm / "eval-test.json").read_text())
     assert saved["read_jitter"] == 1  # recorded (this tiny run reads whole images, which do not move)
-    for key in EVAL_KEYS:
+    for key in EVALUATION_KEYS:
         assert key in saved, key
     assert saved["views"] == 2 and saved["num_ids"] == 2 and saved["bits"] == 8 and saved["split"] == "test"
     assert saved["psnr_clean_model"] is not None and 0.0 <= saved["bit_accuracy_min"] <= 1.0

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import EVALUATION_KEYS
 
 from mnerf_jax.evaluation import plots, report
 from mnerf_jax.evaluation import watermarked as V
@@ -123,21 +124,7 @@ def tiny_eval(tiny) -> tuple[object, dict]:
 def test_tiny_run_identifies_its_ids(tiny_eval) -> None:
     runs, result = tiny_eval
     saved = json.loads((runs.wm / "eval-test.json").read_text())
-    for key in (
-        "bit_accuracy_mean",
-        "bit_accuracy_min",
-        "bit_accuracy_png_mean",
-        "psnr",
-        "psnr_clean_model",
-        "ssim",
-        "lpips",
-        "identification_accuracy",
-        "clean_bit_accuracy",
-        "num_ids",
-        "bits",
-        "split",
-        "views",
-    ):
+    for key in EVALUATION_KEYS:
         assert key in saved, key
     assert saved["num_ids"] == 2 and saved["bits"] == 8 and saved["split"] == "test" and saved["views"] == 6
     # The best-matching key is the ID the view was rendered with (at most one miss in 12); bits above what
