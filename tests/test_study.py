@@ -344,6 +344,11 @@ def test_a_study_end_to_end_records_failures_and_resumes_after_a_kill(
     assert calls == [(first, False), (killed, False), (killed, True)]
     rows = json.loads((study / "results.json").read_text())
     assert [r["status"] for r in rows] == ["failed", "failed", "done", "done"]
+    # The report, written at the end of the run: the failed cells with their error, the figures beside.
+    report = (study / "report.md").read_text()
+    assert report.startswith("# Study smoke_test: report") and "--resume" in report
+    assert f"- failed `{cells[0].id}`: " in report and "no shipped decoder for 12 bits" in report
+    assert (study / "figures" / "robustness-low.png").is_file()
 
     # The killed cell's figures equal an uninterrupted run's (--only: that cell alone).
     ref = tmp_path / "ref"

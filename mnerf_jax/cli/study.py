@@ -10,7 +10,8 @@ from typing import Any
 NAME = "study"
 HELP = (
     "Run a study: scenes × methods × IDs × bit lengths × seeds from SPEC.toml, each scene fitted once, "
-    "each cell embedded, evaluated and attacked; resumable, shardable; DIR/results.csv holds every figure."
+    "each cell embedded, evaluated and attacked; resumable, shardable; DIR/results.csv holds every figure, "
+    "DIR/report.md the paper's comparisons."
 )
 EPILOG = """\
 The spec's layout is documented in mnerf_jax/study/spec.py and docs/usage.md ("mnerf study"); studies/ holds
@@ -21,6 +22,11 @@ with its error (DIR/cells/<id>/error.json, the table's error column) and the stu
 --dry-run lists the selected cells and an estimated cost in millions of rendered pixels (Mpx): fit
 iterations × batch, embedding steps × image pixels × IDs per step, evaluated views × (IDs + 1) × pixels;
 --rate converts it to hours with a pixel rate you have measured on your machine.
+
+At the end of a run (and of a --resume) DIR/report.md is written with its figures in DIR/figures/: the
+capacity curve, the ablation, #WMCom, bit-length and single-message tables, robustness under the attack
+suites, each over its seeds with the paper's figures beside and paired tests between methods, then the failed
+cells. --report-only rebuilds the table and the report from DIR alone, running nothing.
 
 Peak memory in the table is the process's peak resident set so far (ru_maxrss), recorded before and after
 each cell: run one cell per process (--only CELL-ID) to measure each alone.
@@ -60,6 +66,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="PX_PER_S",
         help="with --dry-run: your machine's rendered pixels per second, to show the cost in hours",
+    )
+    parser.add_argument(
+        "--report-only",
+        action="store_true",
+        help="rebuild DIR's table and report (DIR/report.md, DIR/figures/) from its cells; run nothing",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -123,6 +134,41 @@ def dry_run(spec: Any, cells: list[Any], out: Path | None, rate: float | None) -
     return "\n".join(lines)
 
 
+def command_line(args: argparse.Namespace) -> str:
+    """The ``mnerf study`` command ``args`` stand for (the report's head names it)."""
+    import shlex
+
+    argv = ["mnerf", "study", str(args.spec), "--out", str(args.out)]
+    argv += ["--resume"] * args.resume + (["--shard", args.shard] if args.shard else [])
+    argv += [a for item in args.only for a in ("--only", item)]
+    argv += ["--report-only"] * args.report_only
+    return shlex.join(argv)
+
+
+def write_report(spec: Any, out: Path, rows: Any, args: argparse.Namespace) -> Path:
+    from mnerf_jax.study import report
+
+    return report.write_report(out, rows, spec.name, str(spec.path), command_line(args))
+
+
+def report_only(spec: Any, args: argparse.Namespace) -> int:
+    """``--report-only``: the table and the report of the study in ``--out``, rebuilt from its cells."""
+    from mnerf_jax.core.errors import MnerfError
+    from mnerf_jax.study import results, runner
+
+    if args.dry_run or args.shard or args.only or args.resume:
+        raise MnerfError("--report-only runs nothing: it takes no --dry-run, --resume, --shard or --only")
+    marker = results.read_json(args.out / runner.STUDY_FILE)
+    if marker is None or marker.get("kind") != runner.STUDY_KIND:
+        raise MnerfError(f"--out {args.out} holds no study (no {runner.STUDY_FILE})")
+    if marker.get("name") != spec.name:
+        raise MnerfError(f"--out {args.out} holds study {marker.get('name')!r}, not {spec.name!r}")
+    rows = results.write_tables(spec, args.out)
+    path = write_report(spec, args.out, rows, args)
+    print(f"mnerf study {spec.name}: report of {len(rows)} cells -> {path}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     from mnerf_jax.core.errors import MnerfError
     from mnerf_jax.study import grid, runner
@@ -133,6 +179,8 @@ def run(args: argparse.Namespace) -> int:
     if args.rate is not None and args.rate <= 0:
         raise MnerfError(f"--rate must be a positive pixel rate, got {args.rate}")
     spec = load_spec(args.spec)
+    if args.report_only:
+        return report_only(spec, args)
     shard = grid.parse_shard(args.shard) if args.shard else None
     only = [p.strip() for item in args.only for p in item.split(",") if p.strip()]
     cells = grid.select(grid.expand(spec), shard, only)
@@ -155,9 +203,11 @@ def run(args: argparse.Namespace) -> int:
         only=only,
         progress=not args.quiet,
     )
+    report = write_report(spec, summary.out, summary.rows, args)
     print(
         f"mnerf study {spec.name}: {summary.ran} cells run, {summary.skipped} already done, "
-        f"{len(summary.failed)} failed, of {summary.selected} selected -> {summary.out / 'results.csv'}"
+        f"{len(summary.failed)} failed, of {summary.selected} selected -> {summary.out / 'results.csv'}, "
+        f"{report}"
     )
     for cell_id, error in summary.failed:
         print(f"  failed {cell_id}: {error}", file=sys.stderr)

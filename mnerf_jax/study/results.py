@@ -298,7 +298,7 @@ def columns_of(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     return [*fixed, *attack, *PAPER_COLUMNS, "error"]
 
 
-def _write_atomic(path: Path, text: str) -> None:
+def write_text_atomic(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
         with os.fdopen(fd, "w", newline="") as f:
@@ -378,6 +378,6 @@ def write_tables(spec: StudySpec, out: Path) -> list[dict[str, Any]]:
     columns = columns_of(rows)
     rows = [{c: r.get(c) for c in columns} for r in rows]  # tidy: every row has every column
     rundir.write_json_atomic(out / "results.json", rows)
-    _write_atomic(out / "results.csv", to_csv(rows))
-    _write_atomic(out / "results.md", to_markdown(spec, rows))
+    write_text_atomic(out / "results.csv", to_csv(rows))
+    write_text_atomic(out / "results.md", to_markdown(spec, rows))
     return rows

@@ -9,6 +9,7 @@ The study folder::
     DIR/cells/<cell-id>/result.json written last, atomically: the cell is done
     DIR/cells/<cell-id>/error.json  a failed cell's error (the study goes on; a later run retries it)
     DIR/results.{json,csv,md}       the table (results.py), rewritten after every cell
+    DIR/report.md, DIR/figures/     the report (report.py), written by ``mnerf study`` when the run ends
 
 A killed study loses at most the stage it was in: a fit and an embedding resume from their last checkpoint
 (``mnerf fit --resume``, ``mnerf embed --resume``), an evaluation or attack suite is redone, and a stage
