@@ -365,6 +365,7 @@ def test_a_study_end_to_end_records_failures_and_resumes_after_a_kill(
     assert 0 < done["params_m_watermark"] < done["params_m"] and done["size_mb"] > done["size_mb_watermark"]
     assert done["embed_steps"] == 6 and done["views"] == 2 and done["wall_s"] > 0 and done["peak_rss_mb"] > 0
     assert done["wmcom"] == 4 and done["noised"] is True and done["paper_bit_acc"] is None
+    assert "cores" in done["machine"] and f"- machine: {done['machine']}" in report
     assert rows[0]["bits"] == 12 and rows[0]["bit_acc"] is None
     header = (study / "results.csv").read_text().splitlines()[0].split(",")
     assert header[:3] == ["study", "cell_id", "status"] and "attack_low_named" in header

@@ -48,6 +48,7 @@ def make_row(method: str, variant: str, n: int, bits: int, seed: int, **extra: A
         "lpips": 0.05,
         "params_m_watermark": 1.0,
         "error": None,
+        "machine": "a CPU, 2 cores",
     }
     row.update(extra)
     found = paper_numbers.match(row)
@@ -107,6 +108,7 @@ def test_the_report_holds_every_table_with_its_seeds_and_the_papers_figures(tmp_
     text = path.read_text()
     assert text.startswith("# Study synthetic: report")
     assert "`studies/x.toml`" in text and "`mnerf study x --out y`" in text
+    assert "- machine: a CPU, 2 cores\n" in text
 
     # Capacity: multinerf and waterf_mod at every number of IDs, waterf_mod's 64 IDs not run.
     capacity = "### lego, 16-bit messages"

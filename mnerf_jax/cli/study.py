@@ -148,7 +148,7 @@ def command_line(args: argparse.Namespace) -> str:
 def write_report(spec: Any, out: Path, rows: Any, args: argparse.Namespace) -> Path:
     from mnerf_jax.study import report
 
-    return report.write_report(out, rows, spec.name, str(spec.path), command_line(args))
+    return report.write_report(out, rows, spec.name, str(args.spec), command_line(args))
 
 
 def report_only(spec: Any, args: argparse.Namespace) -> int:

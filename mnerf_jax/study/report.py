@@ -21,8 +21,6 @@ from mnerf_jax.study.results import write_text_atomic
 
 REPORT_FILE = "report.md"
 FIGURES_DIR = "figures"
-# Columns a row may carry naming the machine that ran it (listed in the report's head when present).
-HOST_COLUMNS = ("host", "machine", "platform", "device", "jax_backend", "jax_version")
 TESTED = {m: METRICS[m] for m in ("bit_acc", "psnr")}
 NONE = "No rows of this study form this table."
 
@@ -35,12 +33,7 @@ def _figure(out: Path, name: str) -> tuple[Path, str]:
 def head(rows: Sequence[Row], name: str, spec: str | None, command: str | None) -> list[str]:
     """The report's title, spec, command, machines, and the cells' statuses."""
     status = {s: sum(r.get("status") == s for r in rows) for s in ("done", "failed", "pending")}
-    hosts = {
-        f"{c}: {r[c]}"
-        for r in rows
-        for c in HOST_COLUMNS
-        if r.get(c) is not None and r.get("status") == "done"
-    }
+    hosts = {str(r["machine"]) for r in rows if r.get("machine") and r.get("status") == "done"}
     seeds = sorted({r.get("seed") for r in rows if r.get("seed") is not None})
     return [
         f"# Study {name}: report",

@@ -129,6 +129,7 @@ MACHINE_COLUMNS = (
     "wall_s",
     "peak_rss_mb",
     "peak_rss_before_mb",
+    "machine",
 )
 PAPER_METRICS = (
     "bit_acc",
@@ -282,6 +283,7 @@ def row(spec: StudySpec, cell: grid.Cell, out: Path, fits: dict[str, Any] | None
         values.update(times)
         values["peak_rss_mb"] = result.get("peak_rss_mb")
         values["peak_rss_before_mb"] = result.get("peak_rss_before_mb")
+        values["machine"] = result.get("machine")  # None for a cell finished before it was recorded
     found = paper_numbers.match(values)
     for metric in PAPER_METRICS:
         values[f"paper_{metric}"] = found[metric].value if metric in found else None
