@@ -215,3 +215,45 @@ def test_report_only_rebuilds_a_study_folders_report(tmp_path: Path, mnerf) -> N
     assert (out / "results.csv").is_file()
     code, _, err = mnerf("study", path, "--out", out, "--report-only", "--resume")
     assert code == 2 and "runs nothing" in err
+
+
+def test_the_paper_cpu_study_forms_every_table_the_paper_has(tmp_path: Path) -> None:
+    """The rows of studies/paper_cpu.toml (figures made up, the 8- and 32-bit cells failed) form the capacity
+    curve at 1–64 IDs for MultiNeRF and WateRF-modified, every row of the ablation table, the #WMCom and
+    bit-length tables and the single-message table of MultiNeRF, MN-noised and WateRF."""
+    from conftest import PROJECT_ROOT
+
+    from mnerf_jax.study import grid, results
+
+    spec = load_spec(PROJECT_ROOT / "studies" / "paper_cpu.toml")
+    rows, fits = [], {}
+    for cell in grid.expand(spec):
+        r = results.row(spec, cell, tmp_path / "empty", fits)
+        if r["bits"] in (8, 32):
+            r.update(status="failed", error="no decoder")
+        else:
+            r.update(
+                status="done", bit_acc=0.9 - 0.01 * math.log2(r["num_ids"]) + 0.01 * r["seed"], psnr=30.0
+            )
+        rows.append(r)
+    text = report.write_report(tmp_path, rows, spec.name).read_text()
+    capacity = text.split("## Capacity", 1)[1].split("## Ablation", 1)[0]
+    assert "| IDs | `multinerf` (MultiNeRF" in capacity and "`waterf_mod` (WateRF-modified" in capacity
+    for n in IDS:
+        assert table_row(capacity, "###", str(n))[1].endswith("(n=2)")
+    ablation = text.split("## Ablation", 1)[1].split("## #WMCom", 1)[0]
+    for name in dict.fromkeys(f.label for f in paper_numbers.figures() if f.table == "tab:ablation"):
+        assert f"| {name} | " in ablation
+    wmcom = text.split("## #WMCom", 1)[1].split("## Bit length", 1)[0]
+    assert [table_row(wmcom, "###", str(w))[1].split()[0] for w in (2, 4, 8, 48)] == [
+        "`wmcom2`",
+        "`wmcom4`",
+        "`multinerf`",
+        "`wmcom48`",
+    ]
+    bits = text.split("## Bit length", 1)[1].split("## Single", 1)[0]
+    for b, shown in ((8, "—"), (16, "(n=2)"), (32, "—"), (48, "(n=2)")):
+        assert table_row(bits, "### lego, 16 IDs", str(b))[2].endswith(shown)
+    single = text.split("### 48-bit message", 1)[1].split("##", 1)[0]
+    for method in ("`multinerf_single` (MultiNeRF)", "`multinerf_single_noised`", "`waterf` (WateRF"):
+        assert f"| {method}" in single

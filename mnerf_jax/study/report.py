@@ -117,6 +117,8 @@ def robustness_section(out: Path, rows: Sequence[Row]) -> list[str]:
     tested = {f"attack_{s}_bit_acc": (f"{s}: bit acc. %", "pct") for s in suites}
     lines += comparisons(attacked, tested)
     for suite in suites:
+        if not report_tables.attacks_of(attacked, suite):
+            continue  # the suite's mean only, no attack's own figure
         path, link = _figure(out, f"robustness-{suite}.png")
         report_plots.robustness_plot(path, attacked, suite)
         lines += [

@@ -326,9 +326,10 @@ def _paper_rows(table_id: str) -> dict[str, list[paper_numbers.PaperFigure]]:
 
 
 def axis_table(rows: Sequence[Row], axis: str, title: str, metrics: Sequence[str]) -> list[str]:
-    """A row per method of ``rows`` ordered by ``axis`` (#WMCom, bits), the paper's figures beside."""
+    """A row per method and value of ``axis`` (#WMCom, bits) ordered by the value, the paper's beside."""
     paper = tuple(m for m in metrics if m != "bit_acc_worst_id")
-    methods = sorted(by_method(rows).values(), key=lambda rs: rs[0][axis])
+    settings = group(rows, lambda r: settings_key(r, "method", axis)).values()
+    methods = sorted(settings, key=lambda rs: rs[0][axis])
     head = [title, "method", *metric_head(metrics, paper), "paper source"]
     body = [
         [str(rs[0][axis]), label(rs), *metric_cells(rs, metrics, paper), source(rs, paper)] for rs in methods
