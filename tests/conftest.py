@@ -85,17 +85,43 @@ XDIST_GROUPS = {
 }
 
 
+# Units that take longest, started first (the rest follow by their number of tests, pytest-xdist's own
+# order). pytest-xdist hands out the units with most tests first, which leaves a long unit of one or two tests
+# (the lego fit) for the end of the run, with the other worker idle. Only an order: a stale entry costs time,
+# never a test.
+LONGEST_UNITS_FIRST = (
+    "tiny-watermarked",
+    "test_e2e_lego.py",
+    "test_decoder.py",
+    "test_decoder_refit.py",
+    "tiny-schedule",
+    "test_sample_cache.py",
+)
+
+
 @pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist: unknown (and unused) where it is not installed
 def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
-    """``--dist loadfile`` with the files of :data:`XDIST_GROUPS` merged into one unit each."""
+    """``--dist loadfile`` with the files of :data:`XDIST_GROUPS` merged into one unit each, the units of
+    :data:`LONGEST_UNITS_FIRST` handed out first."""
     if config.getvalue("dist") != "loadfile":
         return None
     from xdist.scheduler import LoadScopeScheduling
+
+    def rank(scope: str) -> int:
+        name = Path(scope).name
+        return LONGEST_UNITS_FIRST.index(name) if name in LONGEST_UNITS_FIRST else len(LONGEST_UNITS_FIRST)
 
     class GroupedFileScheduling(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
             path = nodeid.split("::", 1)[0]
             return XDIST_GROUPS.get(Path(path).name, path)
+
+        def _assign_work_unit(self, node: object) -> None:
+            # The queue is in pytest-xdist's order; a stable sort keeps it within equal ranks.
+            ordered = sorted(self.workqueue.items(), key=lambda item: rank(item[0]))
+            self.workqueue.clear()
+            self.workqueue.update(ordered)
+            super()._assign_work_unit(node)
 
     return GroupedFileScheduling(config, log)
 

@@ -70,23 +70,32 @@ def test_sampler_is_a_function_of_seed_and_step():
 
 
 def test_budgets_grow_on_overflow_and_refit_two_steps_later():
-    b = train.SampleBudgets(density=4096, colour=2048)
-    cap = 1 << 20
-    assert b.observe(10, density_count=5000, colour_count=100, n_samples=64, cap=cap)  # overflow: redo
-    assert b.density >= 5000 * b.growth and b.for_step(10)[0] == b.density
-    assert not b.observe(10, density_count=5000, colour_count=100, n_samples=64, cap=cap)
+    b = train.SampleBudgets(density=1 << 18, colour=1 << 17)
+    cap = 1 << 22
+    assert b.observe(10, density_count=300_000, colour_count=4_000, n_samples=64, cap=cap)  # overflow: redo
+    assert b.density >= 300_000 * b.growth and b.for_step(10)[0] == b.density
+    assert not b.observe(10, density_count=300_000, colour_count=4_000, n_samples=64, cap=cap)
     before = b.for_step(11)
-    b.schedule_refit(12, cap, remaining=100)  # decided after step 10: step 11 is already in flight
+    b.schedule_refit(12, cap, remaining=1000)  # decided after step 10: step 11 is already in flight
     assert b.for_step(11) == before
     assert b.for_step(12)[1] < before[1]  # colour was barely used: shrunk
     assert b.for_step(12)[1] <= b.for_step(12)[0]  # colour never exceeds density
-    # Near the end of a phase a smaller buffer would not repay its compilation.
-    late = train.SampleBudgets(density=4096, colour=2048)
-    late.observe(10, density_count=100, colour_count=100, n_samples=64, cap=cap)
+    # Near the end of a phase a smaller buffer would not repay its compilation ...
+    late = train.SampleBudgets(density=1 << 18, colour=1 << 17)
+    late.observe(10, density_count=4_000, colour_count=4_000, n_samples=64, cap=cap)
     late.schedule_refit(12, cap, remaining=5)
-    assert late.for_step(12) == (4096, 2048)
+    assert late.for_step(12) == (1 << 18, 1 << 17)
+    # ... nor would freeing a few thousand slots, however many steps are left; the full phase does.
+    small = train.SampleBudgets(density=4096, colour=2048)
+    small.observe(10, density_count=100, colour_count=100, n_samples=64, cap=cap)
+    small.schedule_refit(12, cap, remaining=1000)
+    assert small.for_step(12) == (4096, 2048)
+    late.observe(11, density_count=4_000, colour_count=4_000, n_samples=64, cap=cap)
+    late.schedule_refit(13, cap, remaining=1000)
+    freed = sum((1 << 18, 1 << 17)) - sum(late.for_step(13))
+    assert freed * 1000 >= late.refit_cost_slot_steps
     # A new phase scales the latest colour count to the new samples per ray.
-    assert b.colour_estimate(128) == pytest.approx(100 * 2 * b.headroom)
+    assert b.colour_estimate(128) == pytest.approx(4_000 * 2 * b.headroom)
 
 
 def test_large_budgets_are_refitted_more_often_and_by_smaller_rungs():

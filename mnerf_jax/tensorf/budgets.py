@@ -175,7 +175,9 @@ class SampleBudgets:
     growth: float = 1.5  # after an overflow: the count times this (counts rise fast early on)
     shrink_below: float = 0.5  # refit only budgets used below this fraction ...
     shrink_large_to: float = 0.75  # ... or, from LARGE_BUDGET slots on, when the new size is at most this
-    min_remaining: int = 30  # ... and only with at least this many steps left in the phase
+    # ... and only when the slots freed times the steps left in the phase reach this many: about what one
+    # compilation of the train step costs in sample-slot evaluations, so a smaller buffer repays its compile.
+    refit_cost_slot_steps: int = 1 << 23
 
     def for_step(self, step: int) -> tuple[int, int]:
         """``(density, colour)`` budgets for dispatching step ``step`` (no side effects).
@@ -219,8 +221,8 @@ class SampleBudgets:
     def schedule_refit(self, effective_step: int, cap: int, remaining: int) -> None:
         """From ``effective_step`` on, shrink budgets whose peak use since the last refit is low.
 
-        ``remaining``: steps left in the phase; with fewer than ``min_remaining`` the compilation
-        would cost more than the smaller buffers save.
+        ``remaining``: steps left in the phase; a refit whose freed slots times ``remaining`` stay below
+        ``refit_cost_slot_steps`` would cost more compilation than the smaller buffers save.
         """
         sizes = []
         for name in ("density", "colour"):
@@ -230,9 +232,10 @@ class SampleBudgets:
                 worth = fitted <= self.shrink_large_to * size
             else:
                 worth = peak * self.headroom < self.shrink_below * size
-            if peak and worth and remaining >= self.min_remaining:
-                size = fitted
-            sizes.append(size)
+            sizes.append(fitted if peak and worth else size)
+        freed = self.density + self.colour - sum(sizes)
+        if freed * remaining < self.refit_cost_slot_steps:
+            sizes = [self.density, self.colour]
         self.peak_density = self.peak_colour = 0
         if tuple(sizes) != (self.density, self.colour):
             self.next_step, self.next_density, self.next_colour = effective_step, sizes[0], sizes[1]

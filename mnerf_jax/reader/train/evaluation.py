@@ -3,6 +3,7 @@ and under the run's augmentation policy, and their PSNR."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from typing import Any
@@ -158,3 +159,67 @@ def clean_accuracy(
     encoded = encode_batch(cfg, enc_vars, images, bits)
     logits = dec.decode_logits(dec_vars, jnp.asarray(encoded), cfg.wavelet)
     return float(jnp.mean((logits > 0) == (jnp.asarray(bits) > 0.5)))
+
+
+def sized_batch(size: int, pixels_of: tuple[int, int] = (32, 64)) -> int:
+    """Images per batch at side ``size``: about as many pixels as ``pixels_of[0]`` images of
+    ``pixels_of[1]``² (so memory stays flat as the side grows), at least one."""
+    count, side = pixels_of
+    return max(1, round(count * (side / size) ** 2))
+
+
+def clean_bit_balance(
+    dec_vars: dict[str, Any], images: np.ndarray, wavelet: str, batch: int
+) -> dict[str, float]:
+    """How a decoder reads images without a watermark: ``ones_mean`` (share of 1 bits), ``bias_max`` (the
+    largest ``|P[bit = 1] − ½|`` over the bits) and ``bias_mean`` (its mean over the bits). A decoder whose
+    clean reads are fair has biases near 0 (within about ``1 / √images``)."""
+    logits = np.concatenate(
+        [
+            np.asarray(dec.decode_logits(dec_vars, jnp.asarray(images[i : i + batch]), wavelet))
+            for i in range(0, len(images), batch)
+        ]
+    )
+    ones = (logits > 0).mean(axis=0)
+    bias = np.abs(ones - 0.5)
+    return {"ones_mean": float(ones.mean()), "bias_max": float(bias.max()), "bias_mean": float(bias.mean())}
+
+
+def evaluate_across_sizes(
+    cfg: DecoderTrainConfig,
+    dec_vars: dict[str, Any],
+    sizes: tuple[int, ...],
+    images: int,
+    iterations: tuple[int, ...] = (1, 10),
+    enc_vars: dict[str, Any] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """A decoder's held-out figures at each image side in ``sizes`` (pixels): ``{"64px": {...}, ...}``.
+
+    Per side, on ``images`` held-out images (never trained on) and their messages: the informed embeddings
+    after each count of ``iterations`` (how a radiance field carries the watermark: it follows the decoder's
+    gradient), the HiDDeN encoder's images when ``enc_vars`` is given, each with no attack and under the
+    Low policy (``cfg.eval_augment_draws`` draws; 0: no attacked read), every image at ≥ ``cfg.target_psnr``
+    dB; and the clean images' bit balance (:func:`clean_bit_balance`).
+    """
+    out: dict[str, Any] = {}
+    for size in sizes:
+        if progress is not None:
+            progress(f"{size}px")
+        x = heldout_images(images, size)
+        m = heldout_messages(images, cfg.bits)
+        batch = sized_batch(size)
+        row: dict[str, Any] = {
+            "images": int(images),
+            "informed": {
+                f"{n}_iterations": evaluate_informed(cfg, dec_vars, x, m, n, batch) for n in iterations
+            },
+            "clean": clean_bit_balance(dec_vars, x, cfg.wavelet, batch),
+        }
+        if enc_vars is not None:
+            encoded = evaluate(
+                dataclasses.replace(cfg, eval_informed_iterations=()), enc_vars, dec_vars, x, m, batch
+            )
+            row["encoder"] = {k: v for k, v in encoded.items() if k != "informed"}
+        out[f"{size}px"] = row
+    return out

@@ -1,0 +1,64 @@
+"""``scripts/eval_decoder.py``: a decoder's held-out figures per image side, on a small random decoder."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+
+from mnerf_jax.reader.train import evaluation
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("eval_decoder_script", ROOT / "scripts" / "eval_decoder.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_batches_hold_about_the_same_pixels_at_every_side() -> None:
+    assert evaluation.sized_batch(64) == 32 and evaluation.sized_batch(32) == 128
+    assert evaluation.sized_batch(800) == 1 and evaluation.sized_batch(4000) == 1
+    for side in (64, 128, 256, 512):
+        assert abs(evaluation.sized_batch(side) * side**2 - 32 * 64**2) <= side**2 / 2
+
+
+def test_eval_decoder_reports_every_side(tmp_path: Path, make_decoder, capsys) -> None:
+    decoder = make_decoder(tmp_path / "dec8.npz", 8)
+    out = tmp_path / "sizes.json"
+    argv = ["--decoder", str(decoder), "--sizes", "16,32", "--images", "3", "--iterations", "1"]
+    code = _script().main([*argv, "--draws", "0", "--json", "--out", str(out)])
+    assert code == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == json.loads(out.read_text())
+    assert printed["bits"] == 8 and list(printed["sizes"]) == ["16px", "32px"]
+    for row in printed["sizes"].values():
+        informed = row["informed"]["1_iterations"]
+        assert 0.0 <= informed["bit_acc_none"] <= 1.0 and informed["bit_acc_low"] is None
+        assert informed["psnr_min"] >= printed["target_psnr"] - 1e-3  # every image at ≥ the stated PSNR
+        clean = row["clean"]
+        assert 0.0 <= clean["bias_mean"] <= clean["bias_max"] <= 0.5 and 0.0 <= clean["ones_mean"] <= 1.0
+        assert "encoder" not in row
+    # The table names every side; bad input is one line.
+    assert _script().main([*argv, "--draws", "0"]) == 0
+    table = capsys.readouterr().out
+    assert "| 16px |" in table and "| 32px |" in table
+    assert _script().main(["--decoder", str(tmp_path / "absent.npz"), "--sizes", "16"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("eval_decoder: error:")
+
+
+def test_clean_bit_balance_counts_ones_per_bit(make_decoder, tmp_path: Path) -> None:
+    from mnerf_jax.reader import decoder_io
+
+    loaded = decoder_io.load_decoder(make_decoder(tmp_path / "dec8.npz", 8))
+    images = np.random.default_rng(0).uniform(0, 1, (6, 16, 16, 3)).astype(np.float32)
+    balance = evaluation.clean_bit_balance(loaded.variables, images, loaded.wavelet, batch=4)
+    logits = np.asarray(evaluation.dec.decode_logits(loaded.variables, images, loaded.wavelet))
+    ones = (logits > 0).mean(axis=0)
+    assert balance["ones_mean"] == float(ones.mean())
+    assert balance["bias_max"] == float(np.abs(ones - 0.5).max())
