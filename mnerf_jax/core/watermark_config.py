@@ -141,6 +141,12 @@ class LossesConfig:
     lambda_clean: float = 0.3
     # What the clean term reads as unwatermarked: the training view, or the clean model's render of it.
     clean_negative: CleanNegative = "ground_truth"
+    # Phase 2: + lambda_anchor · mean squared difference between the decoder's logits and the starting
+    # decoder's (which never saw the keys) on anchor_images clean images a step (augmented like the renders:
+    # crops of scikit-image's training photographs, procedural textures), so that its reads of images without
+    # a watermark stay those of a decoder fixed before the keys were drawn. 0: off (the paper).
+    lambda_anchor: float = 0.0
+    anchor_images: int = 4
 
     def __post_init__(self) -> None:
         _check_literals(self, "watermark.losses")
@@ -150,6 +156,11 @@ class LossesConfig:
         _require(
             self.id_loss_power >= 0,
             f"watermark.losses.id_loss_power must be ≥ 0 (0: every ID alike), got {self.id_loss_power}",
+        )
+        _require(
+            self.lambda_anchor >= 0 and self.anchor_images >= 0,
+            "watermark.losses.lambda_anchor and anchor_images must be ≥ 0 (0: off), "
+            f"got {self.lambda_anchor} and {self.anchor_images}",
         )
 
 

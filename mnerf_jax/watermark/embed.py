@@ -69,7 +69,13 @@ from mnerf_jax.watermark.deferred import patch_layout, tiling_patch_size
 from mnerf_jax.watermark.inputs import check_rgb_images, clean_references
 from mnerf_jax.watermark.loop import EmbedLoop, EmbedResult, seed_budgets
 from mnerf_jax.watermark.run import WM_KIND, EmbedError
-from mnerf_jax.watermark.step import EmbedState, make_optimizer, total_steps, uses_clean_renders
+from mnerf_jax.watermark.step import (
+    EmbedState,
+    make_optimizer,
+    total_steps,
+    uses_anchors,
+    uses_clean_renders,
+)
 
 # The embedding run: sources, config, setting up the loop (embed_loop; the jitted step and its optimiser:
 # wm_step).
@@ -339,6 +345,7 @@ def embed(
             vgg,
             references,
             cache=cache,
+            anchor_decoder=jax.device_put(dict(loaded.variables)) if uses_anchors(cfg) else None,
         )
         result = loop.run(state, stop_at, started)
         cfg = loop.config.watermark  # the budget may have sized the field's schedule

@@ -187,6 +187,11 @@ def uses_fidelity(cfg: WatermarkConfig) -> bool:
     return cfg.fidelity.psnr > 0
 
 
+def uses_anchors(cfg: WatermarkConfig) -> bool:
+    """True when phase 2's anchor term is on (``watermark.losses.lambda_anchor`` and ``anchor_images``)."""
+    return cfg.losses.lambda_anchor > 0 and cfg.losses.anchor_images > 0
+
+
 def uses_clean_renders(cfg: WatermarkConfig) -> bool:
     """True when a step needs the clean model's render of its view: the quality budget is on, or the clean
     term reads the clean model's renders (``watermark.losses.clean_negative``)."""
@@ -322,8 +327,11 @@ def make_image_loss(
     keys: jax.Array | None = None,
     ids: jax.Array | None = None,
     fidelity_budget: jax.Array | None = None,
+    anchors: jax.Array | None = None,
+    anchor_decoder: PyTree | None = None,
 ) -> Callable[[jax.Array, PyTree], tuple[jax.Array, dict[str, jax.Array]]]:
-    """The image-level loss ``(image [H, W, 3K], decoder params) -> (loss, {"bce", "key", "perceptual"})``.
+    """The image-level loss ``(image [H, W, 3K], decoder params) -> (loss, {"bce", "key", "perceptual",
+    "anchor"})``.
 
     ``image`` holds the K renders of one view side by side in its channels (:func:`split_renders`), one
     per row of ``message [K, L]``; each term is the mean over the K renders.
@@ -331,7 +339,10 @@ def make_image_loss(
     the render's message and (``lambda_key``) the key cross-entropy against every ID's message
     ``keys [N, L]`` given the renders' ``ids [K]`` (:func:`message_loss`), plus (``lambda_clean``) BCE(T) of
     the equally augmented unwatermarked view against ½: ``target_image``, or the clean model's render
-    ``reference [H, W, 3]`` (``clean_negative = "clean_model"``).
+    ``reference [H, W, 3]`` (``clean_negative = "clean_model"``), plus (``lambda_anchor``, where
+    ``anchors [A, H, W, 3]`` and the starting decoder's variables ``anchor_decoder`` are given) the mean
+    squared difference between the decoder's logits of the equally augmented clean images ``anchors`` and the
+    starting decoder's (held constant).
     Phase 1: no augmentation, plus the perceptual term against ``target_image``. Both phases, with the
     quality budget on: ``lambda_fidelity ·`` :func:`fidelity_loss` against ``reference`` (its MSE budget
     ``fidelity_budget``, this step's value of the ramp, or the config's constant one).
@@ -343,9 +354,9 @@ def make_image_loss(
         raise ValueError("the quality budget and clean_negative='clean_model' need the clean model's render")
     negative = reference if cfg.losses.clean_negative == "clean_model" else target_image
 
-    def decode(images: jax.Array, dec_params: PyTree) -> jax.Array:
-        """Logits ``[B, L]`` of ``images [B, H, W, 3]`` as the decoder sees them (augmented in phase 2: the
-        same key, so the same augmentations for every call; their random parameters per image)."""
+    def seen_ll2(images: jax.Array) -> jax.Array:
+        """The LL2 ``[B, h, w, 3]`` of ``images [B, H, W, 3]`` as the decoder sees them (augmented in phase 2:
+        the same key, so the same augmentations for every call; their random parameters per image)."""
         seen = images
         if spec.phase == 2 and cfg.augment.per_step > 0:
             seen = augment.random_policy(
@@ -356,8 +367,11 @@ def make_image_loss(
                 p=cfg.augment.prob,
                 names=cfg.augment.names or None,
             )
-        variables = {**decoder_state, "params": dec_params}
-        return decoder_lib.apply_ll2(variables, dwt.ll2(windowed(cfg, seen), cfg.reading.wavelet))
+        return dwt.ll2(windowed(cfg, seen), cfg.reading.wavelet)
+
+    def decode(images: jax.Array, dec_params: PyTree) -> jax.Array:
+        """Logits ``[B, L]`` of ``images [B, H, W, 3]`` as the decoder sees them (:func:`seen_ll2`)."""
+        return decoder_lib.apply_ll2({**decoder_state, "params": dec_params}, seen_ll2(images))
 
     def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
         renders = split_renders(image)  # [K, H, W, 3]
@@ -368,12 +382,19 @@ def make_image_loss(
             loss = loss + cfg.losses.lambda_clean * losses.bce_with_logits(
                 clean_logits, 0.5, cfg.losses.bce_temperature
             )
+        anchor = jnp.zeros((), jnp.float32)
+        if spec.phase == 2 and uses_anchors(cfg) and anchors is not None and anchor_decoder is not None:
+            ll2 = seen_ll2(anchors)  # no gradient reaches the anchor images: both decoders read one LL2
+            start = jax.lax.stop_gradient(decoder_lib.apply_ll2(anchor_decoder, ll2))
+            now = decoder_lib.apply_ll2({**decoder_state, "params": dec_params}, ll2)
+            anchor = jnp.mean(jnp.square(now - start))
+            loss = loss + cfg.losses.lambda_anchor * anchor
         perc = jnp.zeros((), jnp.float32)
         if spec.phase == 1 and cfg.losses.lambda_perceptual:
             targets = jnp.broadcast_to(target_image, renders.shape)
             perc = perceptual_loss(cfg.losses.perceptual, renders, targets, vgg_params)
             loss = loss + cfg.losses.lambda_perceptual * perc
-        aux = {"bce": bce, "key": key, "perceptual": perc}
+        aux = {"bce": bce, "key": key, "perceptual": perc, "anchor": anchor}
         if uses_fidelity(cfg):
             aux["fidelity"], aux["mse_clean"] = fidelity_loss(cfg, renders, reference, fidelity_budget)
             loss = loss + cfg.fidelity.weight * aux["fidelity"]
@@ -395,15 +416,19 @@ def embed_step(
     total: jax.Array,
     *,
     spec: StepSpec,
+    anchor_decoder: PyTree | None = None,
 ) -> tuple[EmbedState, dict[str, jax.Array]]:
     """One optimisation step on one view rendered with K IDs (deferred back-propagation).
 
     ``total``: int32 scalar, the steps of the whole schedule (the learning rates decay over it).
+    ``anchor_decoder``: the starting decoder's variables, which the anchor term (:func:`uses_anchors`)
+    reads ``batch["anchors"]`` with.
 
     batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [K, L]`` (0/1 float), ``id [K]`` int32 (distinct),
     ``keys [N, L]`` every ID's message (read where ``lambda_key`` > 0),
     and where :func:`uses_clean_renders` ``reference [H·W, 3]``: the clean model's render of the view;
-    with the quality budget, ``fidelity_mse []``: its MSE budget at this step (:func:`fidelity_budget_db`).
+    with the quality budget, ``fidelity_mse []``: its MSE budget at this step (:func:`fidelity_budget_db`);
+    in phase 2 with the anchor term, ``anchors [A, H, W, 3]``: its clean images (``inputs.anchor_images``).
     Returns the new state and scalar metrics (loss terms, bit accuracy of the un-augmented renders, PSNR;
     means over the K renders; largest per-patch sample counts).
     """
@@ -426,6 +451,8 @@ def embed_step(
         batch.get("keys"),
         batch["id"],
         batch.get("fidelity_mse"),
+        batch.get("anchors"),
+        anchor_decoder,
     )
     ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
     cache = {k: v for k, v in batch.items() if k.startswith("cache_")} or None
@@ -461,6 +488,7 @@ def embed_step(
         "bce": aux["bce"],
         "key_ce": aux["key"],
         "perceptual": aux["perceptual"],
+        "anchor": aux["anchor"],
         "bit_acc": jnp.mean(((logits > 0).astype(jnp.float32) == message).astype(jnp.float32)),
         "psnr": metrics_lib.mse_to_psnr(jnp.mean(jnp.square(renders - target_image))),
         "density_count": aux["render_stats"]["density_count"],
