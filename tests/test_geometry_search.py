@@ -218,7 +218,7 @@ def check_run(tmp_path_factory, check) -> Path:
     import imageio.v3 as iio
 
     run = tmp_path_factory.mktemp("check_run")
-    cfg = config.load_config("procedural", ["watermark.reading.window=0"])
+    cfg = config.load_config("procedural", ["watermark.reading.window=0", "watermark.reading.max_side=0"])
     rundir.write_run_files(run, cfg, data=None, kind=rundir.WATERMARK_KIND)
     shutil.copy(decoder_io.shipped_decoder_path(16), run / "decoder.npz")
     messages = check[1]

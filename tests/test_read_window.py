@@ -100,8 +100,8 @@ def test_decode_with_a_window_reads_the_cropped_image(make_decoder, tmp_path) ->
     cropped = extract.decode(loaded.variables, x[:, top : top + 32, left : left + 32], loaded.wavelet)
     np.testing.assert_allclose(np.asarray(windowed), np.asarray(cropped), atol=1e-5)
     meta = {"read_window": 0.72, "read_background": -1.0}
-    assert rw.of_metadata(meta) == (0.72, None, 0) and rw.of_metadata({}) == (0.0, 1.0, 0)
-    assert rw.of_metadata({**meta, "read_jitter": 2}) == (0.72, None, 2)
+    assert rw.of_metadata(meta) == (0.72, None, 0, 0) and rw.of_metadata({}) == (0.0, 1.0, 0, 0)
+    assert rw.of_metadata({**meta, "read_jitter": 2}) == (0.72, None, 2, 0)
 
 
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -186,3 +186,58 @@ def test_extract_with_a_run_decoder_file_reads_its_recorded_window(make_decoder,
     # --read-jitter overrides the file's jitter.
     records, _ = extract_cmd.extract_records(argparse.Namespace(**{**vars(args), "read_jitter": 0}))
     np.testing.assert_allclose(records[0]["logits"], np.asarray(centred), atol=6e-5)
+
+
+# ----------------------------------------------------------------------------- reading at a fixed side
+
+
+@given(h=st.integers(8, 300), w=st.integers(8, 300), max_side=st.sampled_from([0, 16, 64]))
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+def test_downscaled_keeps_images_up_to_the_side_and_shrinks_longer_ones(
+    h: int, w: int, max_side: int
+) -> None:
+    x = jnp.zeros((1, h, w, 3))
+    out = rw.downscaled(x, max_side)
+    if not max_side or max(h, w) <= max_side:
+        assert out is x
+    else:
+        oh, ow = out.shape[1:3]
+        assert oh % 4 == 0 and ow % 4 == 0 and 4 <= min(oh, ow) and max(oh, ow) <= max_side + 2
+        scale = max_side / max(h, w)
+        for side, new in ((h, oh), (w, ow)):  # the aspect ratio kept to the nearest 4 px (at least 4)
+            assert abs(new - max(side * scale, 4)) <= 2
+
+
+def test_a_read_at_a_fixed_side_does_not_depend_on_the_images_size(make_decoder, tmp_path) -> None:  # noqa: ANN001
+    # The same smooth picture at 64² and at 256² (each pixel repeated 4×4) reads the same at max_side 64:
+    # the downscaled 256² image is the 64² one up to the resampling filter's blur.
+    from mnerf_jax.reader import decoder_io, extract
+
+    loaded = decoder_io.load_decoder(make_decoder(tmp_path / "dec8.npz", 8))
+    coarse = np.random.default_rng(0).uniform(0, 1, (2, 8, 8, 3)).astype(np.float32)
+    small = np.asarray(jax.image.resize(coarse, (2, 64, 64, 3), "linear"))  # a smooth picture
+    large = np.repeat(np.repeat(small, 4, axis=1), 4, axis=2)
+    np.testing.assert_allclose(np.asarray(rw.downscaled(jnp.asarray(large), 64)), small, atol=3e-2)
+    at_64 = np.asarray(extract.decode(loaded.variables, small, loaded.wavelet, max_side=64))
+    np.testing.assert_array_equal(at_64, np.asarray(extract.decode(loaded.variables, small, loaded.wavelet)))
+    read_large = np.asarray(extract.decode(loaded.variables, large, loaded.wavelet, max_side=64))
+    assert np.mean(np.sign(read_large) == np.sign(at_64)) >= 0.9
+    # The gradient passes the resampling (the embedding writes through it).
+    grad = jax.grad(lambda x: jnp.sum(rw.read_window(x, 0.5, 1.0, max_side=16)))(jnp.asarray(large[:1]))
+    assert float(jnp.abs(grad).sum()) > 0
+
+
+def test_runs_embedded_before_max_side_existed_read_at_full_size(tmp_path) -> None:  # noqa: ANN001
+    from mnerf_jax.core import rundir
+    from mnerf_jax.core.watermark_config import ReadingConfig
+
+    assert rw.of_metadata({"read_window": 0.5})[3] == 0  # a decoder file without the setting
+    assert rw.of_metadata({"read_max_side": 64})[3] == 64
+    assert rw.of_config(ReadingConfig())[3] == 64
+    old = {"watermark": {"reading": {"window": 0.72}}}
+    assert rundir.with_full_size_reads(old)["watermark"]["reading"] == {"window": 0.72, "max_side": 0}
+    assert rundir.with_full_size_reads({"watermark": {"read_window": 0.5}})["watermark"]["read_max_side"] == 0
+    new = {"watermark": {"reading": {"max_side": 32}}}
+    assert rundir.with_full_size_reads(new) == new
+    with pytest.raises(MnerfError, match="max_side"):
+        ReadingConfig(max_side=4)

@@ -82,11 +82,11 @@ def extract_records(args: argparse.Namespace) -> tuple[list[dict], object]:
         )
     decoder = extract.resolve_decoder(args.decoder, args.bits)
     # A watermarked run's decoder.npz records the run's read window and jitter; others read the whole image.
-    window, background, jitter = read_window.of_metadata(decoder.metadata)
+    window, background, jitter, max_side = read_window.of_metadata(decoder.metadata)
     if args.read_jitter is not None:
         jitter = read_window.check_jitter(args.read_jitter)
     logits = extract.decode_paths(
-        decoder.variables, args.images, decoder.wavelet, args.batch, window, background, jitter
+        decoder.variables, args.images, decoder.wavelet, args.batch, window, background, jitter, max_side
     )
     records = []
     for path, row in zip(args.images, logits, strict=True):

@@ -76,11 +76,29 @@ def require_marker(run_dir: str | Path) -> dict[str, Any]:
     return marker
 
 
+def with_full_size_reads(values: dict[str, Any]) -> dict[str, Any]:
+    """A watermarked run's saved config, with ``watermark.reading.max_side`` 0 where it does not name it:
+    runs embedded before the setting existed read every image at its own size."""
+    wm = values.get("watermark")
+    if not isinstance(wm, dict):
+        return values
+    reading = wm.get("reading")
+    if isinstance(reading, dict):
+        if "max_side" in reading:
+            return values
+        return {**values, "watermark": {**wm, "reading": {**reading, "max_side": 0}}}
+    return {**values, "watermark": {**wm, "read_max_side": 0}}  # the flat layout before the sections
+
+
 def read_run_config(run_dir: str | Path) -> Config:
     """The resolved config saved in ``RUN/config.json``."""
     path = Path(run_dir) / CONFIG_FILE
     try:
-        return from_dict(json.loads(path.read_text()))
+        values = json.loads(path.read_text())
+        marker = read_marker(run_dir)
+        if marker is not None and marker.get("kind") == WATERMARK_KIND:
+            values = with_full_size_reads(values)
+        return from_dict(values)
     except FileNotFoundError:
         raise RunError(f"{run_dir}: no {CONFIG_FILE}; is this a mnerf run directory?") from None
     except (json.JSONDecodeError, ConfigError) as err:

@@ -203,6 +203,9 @@ class ReadingConfig:
     # background), instead of the whole image; 0: the whole image (the paper). For object-centred scenes.
     window: float = 0.0
     background: float = setting(1.0)  # the backdrop's grey level the window ignores; < 0: centre on the image
+    # The window (or image) is read downscaled to at most this many pixels a side, the shipped decoders'
+    # training side, so reading does not depend on the render's size (not in the paper); 0: at its own size.
+    max_side: int = 64
     # Average the logits over windows moved by up to this many pixels ((2r + 1)² windows); reading only.
     jitter: int = setting(0, host=True, trajectory=False)
     id_threshold: float = setting(1e-3, host=True, trajectory=False)  # corrected p-value that names an ID
@@ -220,6 +223,10 @@ class ReadingConfig:
         _check_literals(self, "watermark.reading")
         _require(0.0 <= self.window <= 1.0, f"watermark.reading.window must be in [0, 1], got {self.window}")
         _require(self.jitter >= 0, f"watermark.reading.jitter must be ≥ 0, got {self.jitter}")
+        _require(
+            self.max_side == 0 or self.max_side >= 8,
+            f"watermark.reading.max_side must be 0 (off) or at least 8 pixels, got {self.max_side}",
+        )
         check_search_grid(self.search_scales, self.search_degrees, "watermark.reading.search_")
         _require(
             0.0 < self.id_threshold < 1.0,
@@ -370,6 +377,7 @@ _RENAMED = {
     "read_window": ("reading", "window"),
     "read_background": ("reading", "background"),
     "read_jitter": ("reading", "jitter"),
+    "read_max_side": ("reading", "max_side"),
     "fidelity_psnr": ("fidelity", "psnr"),
     "lambda_fidelity": ("fidelity", "weight"),
     "fidelity_psnr_start": ("fidelity", "psnr_start"),

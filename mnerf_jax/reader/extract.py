@@ -23,7 +23,7 @@ from mnerf_jax.reader import decoder_io, dwt, read_window
 PIXEL_BUDGET = 1 << 19  # image pixels per decoder call (chunks of 52 images at 100², 1 at 800²)
 
 
-@xla_cpu.jit_cpu_tuned(static_argnames=("wavelet", "window", "background", "jitter"))
+@xla_cpu.jit_cpu_tuned(static_argnames=("wavelet", "window", "background", "jitter", "max_side"))
 def _decode_chunk(
     variables: Mapping[str, Any],
     images: jax.Array,
@@ -31,11 +31,12 @@ def _decode_chunk(
     window: float,
     background: float | None,
     jitter: int,
+    max_side: int,
 ) -> jax.Array:
     logits_of = lambda windows: dec.apply_ll2(variables, dwt.ll2(windows, wavelet))  # noqa: E731
     if jitter:
-        return read_window.jittered_logits(logits_of, images, window, background, jitter)
-    return logits_of(read_window.read_window(images, window, background))
+        return read_window.jittered_logits(logits_of, images, window, background, jitter, max_side)
+    return logits_of(read_window.read_window(images, window, background, max_side=max_side))
 
 
 def check_images(images: Any) -> np.ndarray | jax.Array:
@@ -74,6 +75,7 @@ def decode(
     window: float = 0.0,
     background: float | None = 1.0,
     jitter: int = 0,
+    max_side: int = 0,
 ) -> jax.Array:
     """Logits of images ``[B, H, W, 3]`` in [0, 1] → ``[B, L]`` (a single ``[H, W, 3]`` → ``[L]``).
 
@@ -81,7 +83,8 @@ def decode(
     and ``PIXEL_BUDGET`` pixels. ``window``, ``background``: the decoder reads
     ``read_window.read_window(images, window, background)`` (a watermarked run's ``watermark.read_window``);
     ``jitter`` > 0: the mean of its logits over the windows moved by up to that many pixels
-    (``read_window.jittered_logits``; a run's ``watermark.read_jitter``).
+    (``read_window.jittered_logits``; a run's ``watermark.read_jitter``). ``max_side``: each window read at
+    most that many pixels a side (``read_window.downscaled``; a run's ``watermark.reading.max_side``).
     """
     images = check_images(images)
     single = np.ndim(images) == 3
@@ -99,7 +102,7 @@ def decode(
         part = x[start : start + chunk]
         if part.shape[0] < chunk:  # pad so that every chunk has the compiled shape
             part = jnp.concatenate([part, jnp.zeros((chunk - part.shape[0], *part.shape[1:]), part.dtype)])
-        logits = _decode_chunk(variables, part, wavelet, window, background, jitter)
+        logits = _decode_chunk(variables, part, wavelet, window, background, jitter, max_side)
         outs.append(logits[: min(chunk, n - start)])
     logits = jnp.concatenate(outs) if len(outs) > 1 else outs[0]
     return logits[0] if single else logits
@@ -153,9 +156,10 @@ def decode_paths(
     window: float = 0.0,
     background: float | None = 1.0,
     jitter: int = 0,
+    max_side: int = 0,
 ) -> np.ndarray:
     """Logits ``[N, L]`` of image files, in the given order; images of one size are decoded together
-    (``window``, ``background``, ``jitter``: as :func:`decode`)."""
+    (``window``, ``background``, ``jitter``, ``max_side``: as :func:`decode`)."""
     images = [load_image(p) for p in paths]
     by_size: dict[tuple[int, int], list[int]] = {}
     for i, image in enumerate(images):
@@ -164,7 +168,9 @@ def decode_paths(
     out = np.zeros((len(images), bits), np.float32)
     for indices in by_size.values():
         batch = np.stack([images[i] for i in indices])
-        out[indices] = np.asarray(decode(variables, batch, wavelet, batch_size, window, background, jitter))
+        out[indices] = np.asarray(
+            decode(variables, batch, wavelet, batch_size, window, background, jitter, max_side)
+        )
     return out
 
 

@@ -175,6 +175,7 @@ def search_logits(
     window: float = 0.0,
     background: float | None = 1.0,
     jitter: int = 0,
+    max_side: int = 0,
 ) -> np.ndarray:
     """Logits ``[B, C, L]`` of every candidate read of images ``[B, H, W, 3]`` (uint8, or float in [0, 1]),
     candidates in :meth:`GeometrySearch.candidates`' order (``[:, 0]`` is the plain read).
@@ -205,7 +206,7 @@ def search_logits(
                 part = np.concatenate([part, np.zeros((per - len(part), h, w, 3), np.float32)])
             warped = np.concatenate([undo(part, candidates[c], fill) for c in members])
             logits = np.asarray(
-                extract.decode(variables, warped, wavelet, batch_size, window, background, jitter)
+                extract.decode(variables, warped, wavelet, batch_size, window, background, jitter, max_side)
             ).reshape(len(members), per, -1)
             if out is None:
                 out = np.zeros((b, len(candidates), logits.shape[-1]), np.float32)
@@ -224,6 +225,7 @@ def search_paths(
     window: float = 0.0,
     background: float | None = 1.0,
     jitter: int = 0,
+    max_side: int = 0,
 ) -> np.ndarray:
     """Logits ``[N, C, L]`` of every candidate read of image files (:func:`search_logits`), in the given
     order; images of one size are searched together."""
@@ -234,7 +236,9 @@ def search_paths(
     out: np.ndarray | None = None
     for indices in by_size.values():
         batch = np.stack([images[i] for i in indices])
-        logits = search_logits(variables, batch, search, wavelet, batch_size, window, background, jitter)
+        logits = search_logits(
+            variables, batch, search, wavelet, batch_size, window, background, jitter, max_side
+        )
         if out is None:
             out = np.zeros((len(images), *logits.shape[1:]), np.float32)
         out[indices] = logits

@@ -83,25 +83,43 @@ def window_origin(images: jax.Array, side: int, background: float | None) -> jax
     return jnp.clip(corner, 0, jnp.asarray([h - side, w - side], jnp.int32))
 
 
+def downscaled(images: jax.Array, max_side: int) -> jax.Array:
+    """Images ``[B, H, W, 3]`` resized (antialiased, linear; differentiable) so that their longer side is
+    ``max_side`` pixels, each side a multiple of 4 (the level-2 DWT's), when it is longer; 0: as they are.
+
+    The shipped decoders read the patterns of their training side best (docs/decoders.md): reading every
+    image at that side makes the read, and what the embedding writes for it, independent of the render's
+    size (and of a rescaling attack)."""
+    h, w = images.shape[1:3]
+    if not max_side or max(h, w) <= max_side:
+        return images
+    scale = max_side / max(h, w)
+    size = tuple(max(4, 4 * round(n * scale / 4)) for n in (h, w))
+    return jax.image.resize(images, (images.shape[0], *size, images.shape[3]), "linear", antialias=True)
+
+
 def read_window(
-    images: jax.Array, fraction: float, background: float | None = 1.0, offsets: jax.Array | None = None
+    images: jax.Array,
+    fraction: float,
+    background: float | None = 1.0,
+    offsets: jax.Array | None = None,
+    max_side: int = 0,
 ) -> jax.Array:
     """The windows ``[B, S, S, 3]`` the decoder reads of images ``[B, H, W, 3]``; ``fraction`` 0: the images.
 
     ``S`` = :func:`window_side`; ``background``: the empty backdrop's grey level (1: white, NeRF-Synthetic's
     convention), or None to centre every window on its image. ``offsets [B, 2]`` (int rows, columns): move
     each window by that much from its centred place (still kept inside the image; :func:`jitter_offsets`).
+    ``max_side``: the windows (or images) then :func:`downscaled` to at most that side.
     """
-    if not fraction:
-        return images
     h, w = images.shape[1:3]
+    if not fraction or window_side(h, w, fraction) == h == w:
+        return downscaled(images, max_side)
     side = window_side(h, w, fraction)
-    if side == h == w:
-        return images
     origin = window_origin(images, side, background)
     if offsets is not None:
         origin = _moved(origin, jnp.asarray(offsets, jnp.int32), h, w, side)
-    return _cut(images, origin, side)
+    return downscaled(_cut(images, origin, side), max_side)
 
 
 def _moved(origin: jax.Array, offset: jax.Array, height: int, width: int, side: int) -> jax.Array:
@@ -120,20 +138,22 @@ def jittered_logits(
     fraction: float,
     background: float | None,
     radius: int,
+    max_side: int = 0,
 ) -> jax.Array:
     """Logits ``[B, L]`` of images ``[B, H, W, 3]`` averaged over the windows :func:`jitter_offsets` gives
     (``radius`` 0: the centred window alone). ``logits_of``: windows ``[B', S, S, 3]`` → logits ``[B', L]``,
-    given all ``(2r + 1)² · B`` windows in one batch. The object's centre is found once per image."""
+    given all ``(2r + 1)² · B`` windows in one batch (each :func:`downscaled` to ``max_side``). The object's
+    centre is found once per image."""
     offsets = jitter_offsets(radius)
     h, w = images.shape[1:3]
     if not fraction or window_side(h, w, fraction) == h == w:  # the whole image: every read is the same
-        return logits_of(images)
+        return logits_of(downscaled(images, max_side))
     side = window_side(h, w, fraction)
     b = images.shape[0]
     origin = window_origin(images, side, background)
     moved = [_moved(origin, jnp.asarray(o), h, w, side) for o in offsets]
     windows = jnp.concatenate([_cut(images, corner, side) for corner in moved])
-    return jnp.mean(logits_of(windows).reshape(len(offsets), b, -1), axis=0)
+    return jnp.mean(logits_of(downscaled(windows, max_side)).reshape(len(offsets), b, -1), axis=0)
 
 
 def check_jitter(radius: int) -> int:
@@ -157,16 +177,22 @@ def background_of(read_background: float) -> float | None:
     return None if read_background < 0 else float(read_background)
 
 
-def of_config(reading: ReadingConfig) -> tuple[float, float | None, int]:
-    """``(fraction, background, jitter)`` of a watermark config's ``reading`` section."""
-    return float(reading.window), background_of(float(reading.background)), int(reading.jitter)
+def of_config(reading: ReadingConfig) -> tuple[float, float | None, int, int]:
+    """``(fraction, background, jitter, max_side)`` of a watermark config's ``reading`` section."""
+    return (
+        float(reading.window),
+        background_of(float(reading.background)),
+        int(reading.jitter),
+        int(reading.max_side),
+    )
 
 
-def of_metadata(meta: Mapping[str, Any]) -> tuple[float, float | None, int]:
-    """``(fraction, background, jitter)`` recorded in a decoder file's metadata by ``mnerf embed`` (a file
-    without them reads the whole image, once)."""
+def of_metadata(meta: Mapping[str, Any]) -> tuple[float, float | None, int, int]:
+    """``(fraction, background, jitter, max_side)`` recorded in a decoder file's metadata by ``mnerf embed``
+    (a file without them reads the whole image, once, at its own size)."""
     return (
         float(meta.get("read_window", 0.0)),
         background_of(float(meta.get("read_background", 1.0))),
         int(meta.get("read_jitter", 0)),
+        int(meta.get("read_max_side", 0)),
     )

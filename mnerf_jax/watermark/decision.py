@@ -25,11 +25,12 @@ CALIBRATE_HINT = "scripts/false_claims.py --run WMRUN calibrates it"
 
 def read_settings(reading: Any) -> dict[str, Any]:
     """What a calibration depends on in a ``watermark.reading`` config: the window, its background, the
-    jitter and the wavelet."""
+    jitter, the side it is read at and the wavelet."""
     return {
         "window": float(reading.window),
         "background": float(reading.background),
         "jitter": int(reading.jitter),
+        "max_side": int(reading.max_side),
         "wavelet": str(reading.wavelet),
     }
 

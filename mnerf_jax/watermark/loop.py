@@ -161,6 +161,7 @@ class EmbedLoop:
                 "read_window": wm.reading.window,
                 "read_background": wm.reading.background,
                 "read_jitter": wm.reading.jitter,
+                "read_max_side": wm.reading.max_side,
             },
             wavelet=wm.reading.wavelet,
         )

@@ -214,7 +214,7 @@ def make_refit_step(
     """
     batch = int(cfg.phase3.batch)
     n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.phase3.lambda_clean else 0
-    window, background, _ = read_window.of_config(cfg.reading)  # phase 3 trains on the centred window
+    window, background, _, max_side = read_window.of_config(cfg.reading)  # phase 3 reads as phase 2
     tx = refit_optimizer(cfg)
 
     def prepare(key: jax.Array, images: jax.Array) -> jax.Array:
@@ -230,7 +230,9 @@ def make_refit_step(
                 p=cfg.augment.prob,
                 names=cfg.augment.names or None,
             )
-        return dwt.ll2(read_window.read_window(images, window, background), cfg.reading.wavelet)
+        return dwt.ll2(
+            read_window.read_window(images, window, background, max_side=max_side), cfg.reading.wavelet
+        )
 
     def logits_of(params: PyTree, ll2: jax.Array) -> jax.Array:
         return decoder_lib.apply_ll2({**decoder_state, "params": params}, ll2)

@@ -311,9 +311,10 @@ def message_loss(
 
 def windowed(cfg: WatermarkConfig, images: jax.Array) -> jax.Array:
     """What the decoder reads of images ``[B, H, W, 3]``: the run's read window (``watermark.reading.window``;
-    after the augmentations, as a verifier reads an attacked image)."""
-    fraction, background, _ = read_window.of_config(cfg.reading)
-    return read_window.read_window(images, fraction, background)
+    after the augmentations, as a verifier reads an attacked image), at most ``watermark.reading.max_side``
+    pixels a side."""
+    fraction, background, _, max_side = read_window.of_config(cfg.reading)
+    return read_window.read_window(images, fraction, background, max_side=max_side)
 
 
 def make_image_loss(
