@@ -6,6 +6,8 @@ decoder's training record says otherwise, or ``--psnr``):
 - **informed**: images embedded by following the decoder's gradient for 1 and 10 iterations (how a radiance
   field carries the watermark), read with no attack and under the Low policy (``--draws`` random draws);
 - **encoder**: the HiDDeN encoder's images, when ``--encoder FILE`` (a run's ``encoder.npz``) is given;
+- ``--read-side S``: the informed and clean reads see each image downscaled to at most S pixels a side, as
+  ``watermark.reading.max_side`` reads renders;
 - **clean**: the share of 1 bits on the clean images, and the largest and mean per-bit bias ``|P[1] − ½|``
   (a decoder whose clean reads are fair keeps these near 0: the decision's p-values assume it).
 
@@ -80,6 +82,12 @@ def main(argv: list[str] | None = None) -> int:
         "--draws", type=int, default=None, help="Low-policy draws per image (default the recipe's)"
     )
     parser.add_argument("--psnr", type=float, default=None, help="PSNR of every embedded image, dB")
+    parser.add_argument(
+        "--read-side",
+        type=int,
+        default=0,
+        help="read images downscaled to at most this side, as watermark.reading.max_side (0: as is)",
+    )
     parser.add_argument("--json", action="store_true", help="print the result as JSON, not a table")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON to this file")
     args = parser.parse_args(argv)
@@ -116,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
             args.iterations,
             enc_vars,
             progress=lambda s: print(f"eval_decoder: {s} ...", file=sys.stderr, flush=True),
+            max_side=args.read_side,
         )
     except (MnerfError, OSError) as err:
         print(f"eval_decoder: error: {err}", file=sys.stderr)
@@ -127,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         "bits": loaded.bits,
         "target_psnr": cfg.target_psnr,
         "low_draws": cfg.eval_augment_draws,
+        "read_side": args.read_side,
         "seconds": time.perf_counter() - t0,
         "sizes": sizes,
     }

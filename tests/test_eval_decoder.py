@@ -31,11 +31,11 @@ def test_eval_decoder_reports_every_side(tmp_path: Path, make_decoder, capsys) -
     decoder = make_decoder(tmp_path / "dec8.npz", 8)
     out = tmp_path / "sizes.json"
     argv = ["--decoder", str(decoder), "--sizes", "16,32", "--images", "3", "--iterations", "1"]
-    code = _script().main([*argv, "--draws", "0", "--json", "--out", str(out)])
+    code = _script().main([*argv, "--draws", "0", "--json", "--out", str(out), "--read-side", "16"])
     assert code == 0
     printed = json.loads(capsys.readouterr().out)
     assert printed == json.loads(out.read_text())
-    assert printed["bits"] == 8 and list(printed["sizes"]) == ["16px", "32px"]
+    assert printed["bits"] == 8 and printed["read_side"] == 16 and list(printed["sizes"]) == ["16px", "32px"]
     for row in printed["sizes"].values():
         informed = row["informed"]["1_iterations"]
         assert 0.0 <= informed["bit_acc_none"] <= 1.0 and informed["bit_acc_low"] is None

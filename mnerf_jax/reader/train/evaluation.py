@@ -14,7 +14,7 @@ import numpy as np
 
 from mnerf_jax.imaging import augment
 from mnerf_jax.reader import decoder as dec
-from mnerf_jax.reader import dwt
+from mnerf_jax.reader import dwt, read_window
 from mnerf_jax.reader.train import informed
 from mnerf_jax.reader.train.cover_images import EVAL_SEED, heldout_images, heldout_messages
 from mnerf_jax.reader.train.hidden_encoder import encode, encode_batch
@@ -96,18 +96,20 @@ def evaluate_informed(
     bits: np.ndarray,
     iterations: int,
     batch: int = 32,
+    max_side: int = 0,
 ) -> dict[str, float | None]:
     """Bit accuracy (no attack, Low) and PSNR of informed embeddings (``informed.informed_embed``) of a set.
 
     This is how a radiance field carries the watermark (it follows the decoder's gradient), so these figures
-    predict MultiNeRF's; the encoder's figures (``evaluate``) are the HiDDeN protocol.
+    predict MultiNeRF's; the encoder's figures (``evaluate``) are the HiDDeN protocol. ``max_side``: the
+    decoder reads each image downscaled to at most that side (``read_window.downscaled``; 0: as it is).
     """
     draws = cfg.eval_augment_draws
     augment_fn = policy(cfg) if draws > 0 else None
 
     @jax.jit
     def run(dec_vars, x, m, key):
-        read = lambda y: dec.apply_ll2(dec_vars, dwt.ll2(y, cfg.wavelet))
+        read = lambda y: dec.apply_ll2(dec_vars, dwt.ll2(read_window.downscaled(y, max_side), cfg.wavelet))
         encoded = informed.informed_embed(read, x, m, cfg.target_psnr, iterations)
         acc_clean = jnp.mean((read(encoded) > 0) == (m > 0.5), axis=-1)
         if draws > 0:
@@ -169,14 +171,19 @@ def sized_batch(size: int, pixels_of: tuple[int, int] = (32, 64)) -> int:
 
 
 def clean_bit_balance(
-    dec_vars: dict[str, Any], images: np.ndarray, wavelet: str, batch: int
+    dec_vars: dict[str, Any], images: np.ndarray, wavelet: str, batch: int, max_side: int = 0
 ) -> dict[str, float]:
     """How a decoder reads images without a watermark: ``ones_mean`` (share of 1 bits), ``bias_max`` (the
     largest ``|P[bit = 1] − ½|`` over the bits) and ``bias_mean`` (its mean over the bits). A decoder whose
-    clean reads are fair has biases near 0 (within about ``1 / √images``)."""
+    clean reads are fair has biases near 0 (within about ``1 / √images``). ``max_side``: as
+    :func:`evaluate_informed`."""
     logits = np.concatenate(
         [
-            np.asarray(dec.decode_logits(dec_vars, jnp.asarray(images[i : i + batch]), wavelet))
+            np.asarray(
+                dec.decode_logits(
+                    dec_vars, read_window.downscaled(jnp.asarray(images[i : i + batch]), max_side), wavelet
+                )
+            )
             for i in range(0, len(images), batch)
         ]
     )
@@ -193,6 +200,7 @@ def evaluate_across_sizes(
     iterations: tuple[int, ...] = (1, 10),
     enc_vars: dict[str, Any] | None = None,
     progress: Callable[[str], None] | None = None,
+    max_side: int = 0,
 ) -> dict[str, Any]:
     """A decoder's held-out figures at each image side in ``sizes`` (pixels): ``{"64px": {...}, ...}``.
 
@@ -200,7 +208,8 @@ def evaluate_across_sizes(
     after each count of ``iterations`` (how a radiance field carries the watermark: it follows the decoder's
     gradient), the HiDDeN encoder's images when ``enc_vars`` is given, each with no attack and under the
     Low policy (``cfg.eval_augment_draws`` draws; 0: no attacked read), every image at ≥ ``cfg.target_psnr``
-    dB; and the clean images' bit balance (:func:`clean_bit_balance`).
+    dB; and the clean images' bit balance (:func:`clean_bit_balance`). ``max_side``: the informed and clean
+    reads see each image downscaled to at most that side (the encoder's images are read as they are).
     """
     out: dict[str, Any] = {}
     for size in sizes:
@@ -212,9 +221,10 @@ def evaluate_across_sizes(
         row: dict[str, Any] = {
             "images": int(images),
             "informed": {
-                f"{n}_iterations": evaluate_informed(cfg, dec_vars, x, m, n, batch) for n in iterations
+                f"{n}_iterations": evaluate_informed(cfg, dec_vars, x, m, n, batch, max_side)
+                for n in iterations
             },
-            "clean": clean_bit_balance(dec_vars, x, cfg.wavelet, batch),
+            "clean": clean_bit_balance(dec_vars, x, cfg.wavelet, batch, max_side),
         }
         if enc_vars is not None:
             encoded = evaluate(
