@@ -168,6 +168,7 @@ TINY_LLFF_EMBED = [
 ]
 
 
+@pytest.mark.slow  # compilations of a fit, a cached embedding step and phase 3: about 45 s of CPU
 def test_a_tiny_forward_facing_scene_embeds_with_phase3_novel_views(
     tmp_path: Path, make_decoder: object
 ) -> None:
