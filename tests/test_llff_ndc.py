@@ -5,6 +5,7 @@ window, phase 3 with novel views)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -170,7 +171,7 @@ TINY_LLFF_EMBED = [
 
 @pytest.mark.slow  # compilations of a fit, a cached embedding step and phase 3: about 45 s of CPU
 def test_a_tiny_forward_facing_scene_embeds_with_phase3_novel_views(
-    tmp_path: Path, make_decoder: object
+    tmp_path: Path, make_decoder: Callable[..., Path]
 ) -> None:
     from mnerf_jax.cli.fit import fit_run
 
@@ -179,7 +180,7 @@ def test_a_tiny_forward_facing_scene_embeds_with_phase3_novel_views(
     fit_run(config, data, tmp_path / "fit", evaluate=False, quiet=True)
     scene = load_scene(data, config.data, config.render, ("train",))
     assert scene.ndc and scene.depth_bounds is not None
-    decoder = make_decoder(tmp_path / "dec8.npz", 8, scene.split("train").images)  # type: ignore[operator]
+    decoder = make_decoder(tmp_path / "dec8.npz", 8, scene.split("train").images)
     out = tmp_path / "wm"
     result = E.embed(
         tmp_path / "fit", out, 2, 8, overrides=TINY_LLFF_EMBED, decoder_path=decoder, progress=False
