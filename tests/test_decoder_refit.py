@@ -111,9 +111,11 @@ def test_novel_views_spread_uniformly_in_elevation_or_over_the_spheres_area() ->
         decoder_refit.novel_cameras(cams, 3, 0, "cube")
 
 
-def test_novel_views_refuse_forward_facing_cameras() -> None:
+def test_novel_views_of_forward_facing_cameras_need_the_scenes_depth_bounds() -> None:
+    # Their novel views lie on the spiral render path, whose focus depth comes from the scene's depth bounds
+    # (tests/test_llff_ndc.py tests the poses).
     cams = dataclasses.replace(_ring_cameras(), ndc=NDCSpace(focal=40.0, width=32, height=32, near=1.0))
-    with pytest.raises(ValueError, match="object-centred"):
+    with pytest.raises(ValueError, match="depth bounds"):
         decoder_refit.novel_cameras(cams, 3, 0)
 
 
@@ -339,30 +341,6 @@ def test_a_field_the_time_budget_ends_still_gets_phase_three(
     monkeypatch.undo()
     again = E.embed(tiny.fit, run, 2, 8, overrides=overrides, resume=True, **args)
     assert again.steps == 9 and not again.stopped_by_budget
-
-
-def test_novel_views_on_a_forward_facing_scene_are_refused_before_anything_is_written(
-    tiny: TinyRuns, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    from mnerf_jax.tensorf import run as runs
-
-    real = runs.LoadedRun.load_scene
-
-    def forward_facing(self, *a, **k):
-        scene = real(self, *a, **k)
-        split = scene.split("train")
-        ndc = NDCSpace(
-            focal=float(split.cameras.fx[0]), width=split.cameras.width, height=split.cameras.height, near=1.0
-        )
-        cams = dataclasses.replace(split.cameras, ndc=ndc)
-        return dataclasses.replace(scene, splits={"train": dataclasses.replace(split, cameras=cams)})
-
-    monkeypatch.setattr(runs.LoadedRun, "load_scene", forward_facing)
-    out = tiny.root / "p3_ndc"
-    overrides = [*tiny.embed_overrides, "watermark.phase3.steps=2", "watermark.phase3.views=2"]
-    with pytest.raises(MnerfError, match="forward-facing"):
-        E.embed(tiny.fit, out, 2, 8, overrides=overrides, decoder_path=tiny.decoder, progress=False)
-    assert not out.exists()
 
 
 def test_the_refit_set_reuses_clean_renders_of_the_training_views_it_is_given(tiny: TinyRuns) -> None:

@@ -150,12 +150,12 @@ def test_assemble_inverts_gather() -> None:
 # -------------------------------------------------------------------------------- deferred == direct
 
 
-def _gradients(height: int, width: int, patch: int, use_patch_loss: bool = True):
+def _gradients(height: int, width: int, patch: int, use_patch_loss: bool = True, whole: bool = False):
     params = _toy_params(jax.random.PRNGKey(1))
     extra = {"w": jax.random.normal(jax.random.PRNGKey(2), (3, 4)), "b": jnp.zeros(4)}
     rays = _toy_rays(height, width)
     targets = jax.random.uniform(jax.random.PRNGKey(3), (height * width, 3))
-    layout = D.patch_layout(height, width, patch)
+    layout = D.whole_view_layout(height, width) if whole else D.patch_layout(height, width, patch)
     args = (jnp.asarray(layout.index), jnp.asarray(layout.owner), jax.random.PRNGKey(4), height, width)
     ploss = _patch_loss if use_patch_loss else None
     loss_d, _, image, g_params_d, g_extra_d = jax.jit(
@@ -198,6 +198,16 @@ def test_deferred_gradient_equals_direct_gradient(h: int, w: int, patch: int) ->
     patches = [_toy_render(params, D.gather_rays(rays, i), k)[0] for i, k in pairs]
     expected = D.assemble(jnp.stack(patches), jnp.asarray(layout.index), jnp.asarray(layout.owner), h, w)
     np.testing.assert_allclose(np.asarray(image), np.asarray(expected), atol=1e-6)
+
+
+def test_a_whole_view_patch_of_a_non_square_view_takes_the_patch_loss_on_the_view() -> None:
+    # A cached source renders the whole view as one patch, of the view's own shape (LLFF's views are 4:3).
+    deferred, direct, _, layout = _gradients(7, 11, 0, whole=True)
+    assert layout.num_patches == 1 and layout.rays == 77 and layout.size == 7
+    assert D.patch_shape(layout.index, 7, 11) == (7, 11)
+    assert abs(float(deferred[0]) - float(direct[0])) < 1e-5
+    _assert_trees_close(deferred[1], direct[1])
+    _assert_trees_close(deferred[2], direct[2])
 
 
 def test_deferred_gradient_equals_one_full_render_gradient() -> None:

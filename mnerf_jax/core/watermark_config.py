@@ -271,7 +271,7 @@ class Phase3Config:
     field's renders of the training views and of novel views, every ID; the field is not changed."""
 
     steps: int = 0  # 0: off (the paper's two phases)
-    views: int = 0  # novel views around object-centred training cameras
+    views: int = 0  # novel views around the training cameras (forward-facing scenes: on the spiral path)
     view_density: ViewDensity = "angles"  # uniform in azimuth and elevation, or over the sphere's area
     elevation_margin: float = 0.0  # degrees the novel views reach past the training cameras' elevations
     lr: float = 1e-3

@@ -91,6 +91,14 @@ def spiral_poses(c2w: np.ndarray, depth_bounds: tuple[float, float], n_frames: i
     moving in depth at half that rate, always looking at a point at the focus depth in front of
     the average pose.
     """
+    angles = np.linspace(0.0, 2 * math.pi * SPIRAL_ROTATIONS, n_frames + 1)[:-1]
+    return spiral_poses_at(c2w, depth_bounds, angles)
+
+
+def spiral_poses_at(c2w: np.ndarray, depth_bounds: tuple[float, float], angles: np.ndarray) -> np.ndarray:
+    """The poses of :func:`spiral_poses`' path at the given path angles (radians; the path closes after
+    ``2 pi SPIRAL_ROTATIONS``): [len(angles), 3, 4]. ``c2w`` [N, 3, 4] the scene's cameras, ``depth_bounds``
+    their (nearest, farthest) scene depth."""
     avg = average_pose(c2w)
     up = _unit(c2w[:, :, 1].sum(0))
     near, far = depth_bounds
@@ -100,11 +108,11 @@ def spiral_poses(c2w: np.ndarray, depth_bounds: tuple[float, float], n_frames: i
     radii = np.percentile(np.abs(c2w[:, :, 3]), 90, axis=0)
     target = avg @ np.array([0.0, 0.0, -focus, 1.0])
     poses = []
-    for theta in np.linspace(0.0, 2 * math.pi * SPIRAL_ROTATIONS, n_frames + 1)[:-1]:
+    for theta in np.asarray(angles, np.float64).reshape(-1):
         local = np.array([math.cos(theta), -math.sin(theta), -math.sin(theta * SPIRAL_Z_RATE)]) * radii
         pos = avg @ np.append(local, 1.0)
         poses.append(look_at(pos, target, up))
-    return np.stack(poses)
+    return np.stack(poses) if poses else np.zeros((0, 3, 4))
 
 
 def camera_path(scene: Scene, n_frames: int = 120) -> Cameras:

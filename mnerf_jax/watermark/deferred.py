@@ -8,6 +8,7 @@ Peak memory follows the patch size, not the image size. ``direct_objective`` is 
 every patch on the graph.
 
     layout = patch_layout(H, W, S)            # square S×S patches covering the image (overlaps owned once)
+    layout = whole_view_layout(H, W)          # or one patch of the whole H×W view (a cached source)
     loss, aux, image, g_params, g_extra = deferred_grad(render_fn, image_loss_fn, patch_loss_fn, params,
                                                         extra, rays, targets, layout.index, layout.owner,
                                                         key, H, W)
@@ -29,7 +30,7 @@ PyTree = Any
 RenderFn = Callable[[PyTree, PyTree, jax.Array], tuple[jax.Array, dict[str, jax.Array]]]
 # image_loss_fn(image [H, W, 3], extra) -> (loss, aux); extra: what else is differentiated (decoder params).
 ImageLossFn = Callable[[jax.Array, PyTree], tuple[jax.Array, Any]]
-# patch_loss_fn(rgb [S, S, 3], target [S, S, 3]) -> loss
+# patch_loss_fn(rgb [S, S, 3], target [S, S, 3]) -> loss (a whole-view patch: [H, W, 3])
 PatchLossFn = Callable[[jax.Array, jax.Array], jax.Array]
 
 
@@ -38,10 +39,11 @@ PatchLossFn = Callable[[jax.Array, jax.Array], jax.Array]
 
 @dataclasses.dataclass(frozen=True)
 class PatchLayout:
-    """Square patches covering an image.
+    """Square patches covering an image, or one patch that is the whole (possibly non-square) view.
 
     ``index [P, S·S]`` int32: flat pixel index (``row·W + col``) of each patch pixel, row-major in the patch;
     ``owner [P, S·S]`` float32: 1 where this patch owns the pixel (every pixel has exactly one owner).
+    ``size``: the square patches' side, or the shorter side of a whole-view patch (``index [1, H·W]``).
     """
 
     height: int
@@ -53,6 +55,11 @@ class PatchLayout:
     @property
     def num_patches(self) -> int:
         return int(self.index.shape[0])
+
+    @property
+    def rays(self) -> int:
+        """Pixels (rays) of one patch."""
+        return int(self.index.shape[1])
 
 
 def _starts(n: int, size: int) -> list[int]:
@@ -100,6 +107,29 @@ def patch_layout(height: int, width: int, patch_size: int) -> PatchLayout:
         index=np.stack(index).astype(np.int32),
         owner=np.stack(owner).astype(np.float32),
     )
+
+
+def whole_view_layout(height: int, width: int) -> PatchLayout:
+    """One patch of the whole ``height × width`` view, row-major (a cached source renders a view at once)."""
+    if height < 1 or width < 1:
+        raise ValueError(f"whole_view_layout needs positive sizes, got {height}x{width}")
+    return PatchLayout(
+        height=int(height),
+        width=int(width),
+        size=min(int(height), int(width)),
+        index=np.arange(height * width, dtype=np.int32)[None],
+        owner=np.ones((1, height * width), np.float32),
+    )
+
+
+def patch_shape(layout_index: jax.Array | np.ndarray, height: int, width: int) -> tuple[int, int]:
+    """The (rows, columns) of the patches of ``layout_index [P, R]``: the view's for a whole-view patch
+    (``R = H·W``), else square."""
+    n, pixels = layout_index.shape
+    if n == 1 and pixels == height * width:
+        return int(height), int(width)
+    side = int(round(pixels**0.5))
+    return side, side
 
 
 def gather_rays(rays: PyTree, index: jax.Array) -> PyTree:
@@ -161,10 +191,12 @@ def render_image(
 # ------------------------------------------------------------------------------------------ objectives
 
 
-def _patch_term(patch_loss_fn: PatchLossFn | None, rgb: jax.Array, target: jax.Array, size: int) -> jax.Array:
+def _patch_term(
+    patch_loss_fn: PatchLossFn | None, rgb: jax.Array, target: jax.Array, shape: tuple[int, int]
+) -> jax.Array:
     if patch_loss_fn is None:
         return jnp.zeros((), jnp.float32)
-    return patch_loss_fn(rgb.reshape(size, size, -1), target.reshape(size, size, -1))
+    return patch_loss_fn(rgb.reshape(*shape, -1), target.reshape(*shape, -1))
 
 
 def direct_objective(
@@ -185,13 +217,13 @@ def direct_objective(
 
     ``targets [H·W, 3]``: ground-truth pixels for the patch loss. Returns ``(loss, aux)``.
     """
-    n, size2 = layout_index.shape
-    size = int(round(size2**0.5))
+    n = layout_index.shape[0]
+    shape = patch_shape(layout_index, height, width)
     keys = patch_keys(key, n)
     rgb, _ = jax.vmap(lambda idx, k: render_fn(params, gather_rays(rays, idx), k))(layout_index, keys)
     image = assemble(rgb, layout_index, layout_owner, height, width)
     loss_img, aux = image_loss_fn(image, extra)
-    patch = jax.vmap(lambda r, idx: _patch_term(patch_loss_fn, r, targets[idx], size))(rgb, layout_index)
+    patch = jax.vmap(lambda r, idx: _patch_term(patch_loss_fn, r, targets[idx], shape))(rgb, layout_index)
     return loss_img + patch.sum(), aux
 
 
@@ -221,8 +253,8 @@ def deferred_grad(
       ``(loss, aux, image [H, W, 3], grad_params, grad_extra)``; ``aux`` is the image loss's aux plus
       ``"render_stats"`` (largest per-patch render stats).
     """
-    n, size2 = layout_index.shape
-    size = int(round(size2**0.5))
+    n = layout_index.shape[0]
+    shape = patch_shape(layout_index, height, width)
     keys = patch_keys(key, n)
     image_grad = jax.value_and_grad(image_loss_fn, argnums=(0, 1), has_aux=True)
     if n == 1:
@@ -235,7 +267,7 @@ def deferred_grad(
         image = assemble(rgb[None], layout_index, layout_owner, height, width)
         (loss_img, aux), (g_image, g_extra) = image_grad(image, extra)
         cot = g_image.reshape(height * width, -1)[idx] * layout_owner[0][:, None]
-        loss_p, g_rgb = jax.value_and_grad(lambda r: _patch_term(patch_loss_fn, r, targets[idx], size))(rgb)
+        loss_p, g_rgb = jax.value_and_grad(lambda r: _patch_term(patch_loss_fn, r, targets[idx], shape))(rgb)
         (grads,) = pullback((cot + g_rgb).astype(rgb.dtype))
         return _deferred_result(loss_img, aux, loss_p, stats, image, grads, g_extra)
     image, stats = render_image(render_fn, params, rays, layout_index, layout_owner, key, height, width)
@@ -251,7 +283,7 @@ def deferred_grad(
         idx, cot, k = xs
         target = targets[idx]
         rgb, pullback, _ = jax.vjp(lambda p: render_fn(p, gather_rays(rays, idx), k), params, has_aux=True)
-        loss_p, g_rgb = jax.value_and_grad(lambda r: _patch_term(patch_loss_fn, r, target, size))(rgb)
+        loss_p, g_rgb = jax.value_and_grad(lambda r: _patch_term(patch_loss_fn, r, target, shape))(rgb)
         (g_params,) = pullback((cot + g_rgb).astype(rgb.dtype))
         return (jax.tree.map(jnp.add, acc, g_params), loss_patches + loss_p), None
 

@@ -65,7 +65,7 @@ from mnerf_jax.watermark import model as watermark
 from mnerf_jax.watermark import phase3 as decoder_refit
 from mnerf_jax.watermark import run as wm_run
 from mnerf_jax.watermark import sample_cache
-from mnerf_jax.watermark.deferred import patch_layout, tiling_patch_size
+from mnerf_jax.watermark.deferred import patch_layout, tiling_patch_size, whole_view_layout
 from mnerf_jax.watermark.inputs import check_rgb_images, clean_references
 from mnerf_jax.watermark.loop import EmbedLoop, EmbedResult, seed_budgets
 from mnerf_jax.watermark.run import WM_KIND, EmbedError
@@ -242,19 +242,19 @@ def embed(
     scene = source.load_scene(data_path, splits=("train",))
     split = scene.split("train")
     check_rgb_images(split.images, f"{data_path or source.data_path or 'procedural scene'} (train split)")
-    if cfg.phase3.steps and cfg.phase3.views and split.cameras.ndc is not None:
-        raise EmbedError(
-            "watermark.phase3.views renders novel views around the cameras of an object-centred "
-            "scene; this one is forward-facing: set watermark.phase3.views=0"
-        )
     if loaded is None:
         loaded = decoder_io.fresh_decoder(bits, split.images, seed=cfg.seed, wavelet=cfg.reading.wavelet)
     decoder_source = decoder_io.FRESH if fresh else str(Path(loaded.path).resolve())
     height, width = int(split.images.shape[1]), int(split.images.shape[2])
     # The layout tiles the image with the fewest patches of at most patch_size (no overlap where it divides).
-    # A cached source renders the whole view from its cached samples: one patch, whatever patch_size says.
-    side = max(height, width) if cfg.schedule.cache_source else cfg.schedule.patch_size
-    layout = patch_layout(height, width, tiling_patch_size(height, width, side, losses.SSIM_WINDOW))
+    # A cached source renders the whole view from its cached samples: one patch, whatever patch_size says
+    # (the view's own shape, so non-square views such as LLFF's too).
+    if cfg.schedule.cache_source:
+        layout = whole_view_layout(height, width)
+    else:
+        layout = patch_layout(
+            height, width, tiling_patch_size(height, width, cfg.schedule.patch_size, losses.SSIM_WINDOW)
+        )
     if cfg.losses.lambda_ssim and layout.size < losses.SSIM_WINDOW:
         window = losses.SSIM_WINDOW
         raise EmbedError(
@@ -267,7 +267,7 @@ def embed(
     # density one: the first step cannot overflow (a redo is a compilation). Both are fitted after that one
     # step: a step at the full budgets costs many fitted steps, more than a later overflow would.
     policy = budgets.BudgetPolicy(colour_fraction=1.0, fresh_calls=1)
-    n_rays, n_samples = layout.size * layout.size, source.geometry.n_samples
+    n_rays, n_samples = layout.rays, source.geometry.n_samples
     try:
         if resuming:
             meta = store.read_meta()
@@ -353,7 +353,7 @@ def embed(
         # A field the time budget ended still gets phase 3, in the minutes the budget kept for it.
         cut = result.stopped_by_budget and loop.clock is not None and loop.clock.kept_s > 0
         if cfg.phase3.steps and (field_done or cut):
-            result = refit_phase(loop, result, split, source, progress)
+            result = refit_phase(loop, result, split, source, progress, scene.depth_bounds)
         return result
     finally:
         store.close()
@@ -375,13 +375,19 @@ def check_phase3_unchanged(meta: dict[str, Any], config: Config, out: Path) -> N
 
 
 def refit_phase(
-    loop: EmbedLoop, result: EmbedResult, split: Any, source: runs.LoadedRun, progress: bool
+    loop: EmbedLoop,
+    result: EmbedResult,
+    split: Any,
+    source: runs.LoadedRun,
+    progress: bool,
+    depth_bounds: tuple[float, float] | None = None,
 ) -> EmbedResult:
     """Phase 3 on the field ``result`` ended with (saved in ``loop.out``; the time budget may have ended it
     before its schedule did): the decoder alone (``decoder_refit``, its schedule sized to the budget's
     minutes left), then a checkpoint at step ``phase-1 + phase-2 steps`` (the field's schedule, wherever the
     field stopped) ``+ phase-3 steps``, past the field's schedule, so that ``--resume`` finds the run
-    finished. It is one unit: a run killed inside it redoes it on ``--resume``."""
+    finished. It is one unit: a run killed inside it redoes it on ``--resume``. ``depth_bounds``: the scene's
+    (a forward-facing scene's novel views lie on its spiral path)."""
     tick = time.perf_counter()
     cfg = loop.config.watermark
     clock = loop.clock
@@ -393,7 +399,7 @@ def refit_phase(
         )
         seen = {n: r.reshape(split.images.shape) for n, r in seen.items()}
     data = decoder_refit.render_refit_set(
-        run, split.cameras, cfg, split.images, source, progress, loop.references, seen
+        run, split.cameras, cfg, split.images, source, progress, loop.references, seen, depth_bounds
     )
     keep_going, seconds_left = lambda: True, None
     if clock is not None:

@@ -143,7 +143,7 @@ class EmbedLoop:
         self._ids_per_step = watermark.ids_per_step_of(cfg, self.keys.num_ids)
 
     def budgets(self) -> tuple[int, int]:
-        return self.policy.budgets(BUDGET_SITE, self.layout.size**2, self.geometry.n_samples)
+        return self.policy.budgets(BUDGET_SITE, self.layout.rays, self.geometry.n_samples)
 
     def save(self, state: EmbedState) -> None:
         """Checkpoint, then the decoder as it is now, then keys.json tied to that decoder, then progress."""
@@ -214,7 +214,7 @@ class EmbedLoop:
         host = {k: float(v) for k, v in jax.device_get(metrics).items()}
         counts = {k: int(host[k]) for k in ("density_count", "colour_count")}
         if self.cache is None and self.policy.update(
-            BUDGET_SITE, counts, self.layout.size**2, self.geometry.n_samples
+            BUDGET_SITE, counts, self.layout.rays, self.geometry.n_samples
         ):
             return None
         host.update(phase=float(phase), id=float(ids[0]), view=float(view))

@@ -3,12 +3,13 @@
 In phase 2 the decoder learns one view per step, from renders that keep changing under it. Once the field is
 fixed, every training view rendered with every ID is a labelled set of exactly the images the decoder will be
 given, and a decoder step on it costs a fraction of a field step (no render, no back-propagation into the
-field). Phase 3 renders that set once (``watermark.phase3.views`` more views around the training cameras on
-object-centred scenes), then trains the decoder's weights alone on it: the message BCE and the key term of
-phase 2 on every render, and ``phase3_lambda_clean`` · BCE against ½ on unwatermarked images (the training
-views' photographs, and the clean model's renders of every view used); half of each batch is rounded to 8
-bits as a saved PNG is, and the run's phase-2 augmentations apply when it has them. The field, and so the
-PSNR, does not change (results: docs/experiments/).
+field). Phase 3 renders that set once (``watermark.phase3.views`` more views around the training cameras: on
+their sphere for object-centred scenes, on the spiral render path for forward-facing ones), then trains the
+decoder's weights alone on it: the message BCE and the key term of phase 2 on every render, and
+``phase3_lambda_clean`` · BCE against ½ on unwatermarked images (the training views' photographs, and the
+clean model's renders of every view used); half of each batch is rounded to 8 bits as a saved PNG is, and the
+run's phase-2 augmentations apply when it has them. The field, and so the PSNR, does not change (results:
+docs/experiments/).
 """
 
 from __future__ import annotations
@@ -58,19 +59,30 @@ class RefitSet:
 
 
 def novel_cameras(
-    cameras: Cameras, count: int, seed: int, density: str = "angles", margin_deg: float = 0.0
+    cameras: Cameras,
+    count: int,
+    seed: int,
+    density: str = "angles",
+    margin_deg: float = 0.0,
+    depth_bounds: tuple[float, float] | None = None,
 ) -> Cameras:
-    """``count`` cameras around object-centred ``cameras``, looking at their focus point
-    (``trajectory.focus_point``), with the first camera's intrinsics: azimuth uniform, distance uniform within
-    the given cameras' range, elevation within theirs widened by ``margin_deg`` degrees on either side
-    (clipped to ±90°). ``density`` "angles": elevation uniform; "sphere": uniform over the sphere's area,
-    i.e. sin(elevation) uniform (how NeRF-Synthetic's cameras are drawn, more views near the horizon).
-    Raises ValueError for forward-facing (NDC) cameras, where such poses leave the scene.
+    """``count`` novel cameras with the first camera's intrinsics, seeded by ``seed``.
+
+    Object-centred ``cameras``: around them, looking at their focus point (``trajectory.focus_point``):
+    azimuth uniform, distance uniform within the given cameras' range, elevation within theirs widened by
+    ``margin_deg`` degrees on either side (clipped to ±90°). ``density`` "angles": elevation uniform;
+    "sphere": uniform over the sphere's area, i.e. sin(elevation) uniform (how NeRF-Synthetic's cameras are
+    drawn, more views near the horizon).
+    Forward-facing (NDC) ``cameras``: poses on the render path's spiral around them
+    (``trajectory.spiral_poses_at``, its radii and focus from ``cameras`` and ``depth_bounds``, the scene's
+    (nearest, farthest) depth), at path angles uniform over the whole path; they keep the cameras' NDC space,
+    so their rays are mapped to NDC as the training rays are. ``density`` and ``margin_deg`` do not apply.
+    Raises ValueError for NDC cameras without ``depth_bounds``.
     """
+    if density not in VIEW_DENSITIES:
+        raise ValueError(f"unknown view density {density!r} (known: {VIEW_DENSITIES})")
     if cameras.ndc is not None:
-        raise ValueError(
-            "novel views around the cameras need an object-centred scene, not a forward-facing one"
-        )
+        return _spiral_cameras(cameras, count, seed, depth_bounds)
     c2w = cameras.c2w.astype(np.float64)
     centre, axis = trajectory.focus_point(c2w), trajectory.up_axis(c2w)
     offsets = c2w[:, :, 3] - centre
@@ -85,10 +97,8 @@ def novel_cameras(
     low, high = max(elevation.min() - margin, -math.pi / 2), min(elevation.max() + margin, math.pi / 2)
     if density == "sphere":
         elev = np.arcsin(rng.uniform(math.sin(low), math.sin(high), count))
-    elif density == "angles":
-        elev = rng.uniform(low, high, count)
     else:
-        raise ValueError(f"unknown view density {density!r} (known: {VIEW_DENSITIES})")
+        elev = rng.uniform(low, high, count)
     dist = rng.uniform(radius.min(), radius.max(), count)
     ring = np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2
     pos = centre + dist[:, None] * (np.cos(elev)[:, None] * ring + np.sin(elev)[:, None] * axis)
@@ -105,6 +115,29 @@ def novel_cameras(
     )
 
 
+def _spiral_cameras(
+    cameras: Cameras, count: int, seed: int, depth_bounds: tuple[float, float] | None
+) -> Cameras:
+    """``novel_cameras`` for forward-facing cameras: seeded poses on the spiral render path around them."""
+    if depth_bounds is None:
+        raise ValueError("novel views of a forward-facing scene need its depth bounds (the spiral's focus)")
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5B]))
+    angles = rng.uniform(0.0, 2.0 * math.pi * trajectory.SPIRAL_ROTATIONS, count)
+    c2w = trajectory.spiral_poses_at(cameras.c2w.astype(np.float64), depth_bounds, angles)
+    first = np.zeros(count, np.int64)
+    return Cameras(
+        c2w=c2w,
+        fx=cameras.fx[first],
+        fy=cameras.fy[first],
+        cx=cameras.cx[first],
+        cy=cameras.cy[first],
+        distortion=cameras.distortion[first],
+        width=cameras.width,
+        height=cameras.height,
+        ndc=cameras.ndc,
+    )
+
+
 def render_refit_set(
     run: Any,
     cameras: Cameras,
@@ -114,6 +147,7 @@ def render_refit_set(
     progress: bool = False,
     clean_renders: np.ndarray | None = None,
     training_renders: dict[int, np.ndarray] | None = None,
+    depth_bounds: tuple[float, float] | None = None,
 ) -> RefitSet:
     """Phase 3's training set from a loaded watermarked run (``wm_run.load_watermarked_run``): every ID's
     renders of ``cameras`` (the training views) and of ``watermark.phase3.views`` novel views
@@ -127,7 +161,8 @@ def render_refit_set(
     the novel views are rendered again (a clean render costs about as much as all 16 IDs' renders of a view:
     the geometry pass dominates). ``training_renders``: every ID's renders of ``cameras``, ``{ID: [V, H, W,
     3]}``, when the caller has them (``sample_cache.every_id_renders``), so that only the novel views are
-    rendered."""
+    rendered. ``depth_bounds``: the scene's (nearest, farthest) depth, which a forward-facing scene's novel
+    views need (``Scene.depth_bounds``)."""
 
     if clean_renders is not None and len(clean_renders) != len(cameras):
         raise ValueError(f"{len(clean_renders)} clean renders for {len(cameras)} training views")
@@ -141,6 +176,7 @@ def render_refit_set(
                 int(cfg.seed),
                 cfg.phase3.view_density,
                 cfg.phase3.elevation_margin,
+                depth_bounds,
             )
         )
     to_draw = sets if training_renders is None else sets[1:]
