@@ -102,9 +102,15 @@ def novel_cameras(
     dist = rng.uniform(radius.min(), radius.max(), count)
     ring = np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2
     pos = centre + dist[:, None] * (np.cos(elev)[:, None] * ring + np.sin(elev)[:, None] * axis)
-    first = np.zeros(count, np.int64)
+    poses = np.stack([trajectory.look_at(p, centre, axis) for p in pos]) if count else np.zeros((0, 3, 4))
+    return _posed_like_the_first(cameras, poses)
+
+
+def _posed_like_the_first(cameras: Cameras, c2w: np.ndarray) -> Cameras:
+    """Cameras at poses ``c2w [N, 3, 4]`` with the first of ``cameras``' intrinsics (and NDC setting)."""
+    first = np.zeros(len(c2w), np.int64)
     return Cameras(
-        c2w=np.stack([trajectory.look_at(p, centre, axis) for p in pos]) if count else np.zeros((0, 3, 4)),
+        c2w=c2w,
         fx=cameras.fx[first],
         fy=cameras.fy[first],
         cx=cameras.cx[first],
@@ -112,6 +118,7 @@ def novel_cameras(
         distortion=cameras.distortion[first],
         width=cameras.width,
         height=cameras.height,
+        ndc=cameras.ndc,
     )
 
 
@@ -123,18 +130,8 @@ def _spiral_cameras(
         raise ValueError("novel views of a forward-facing scene need its depth bounds (the spiral's focus)")
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5B]))
     angles = rng.uniform(0.0, 2.0 * math.pi * trajectory.SPIRAL_ROTATIONS, count)
-    c2w = trajectory.spiral_poses_at(cameras.c2w.astype(np.float64), depth_bounds, angles)
-    first = np.zeros(count, np.int64)
-    return Cameras(
-        c2w=c2w,
-        fx=cameras.fx[first],
-        fy=cameras.fy[first],
-        cx=cameras.cx[first],
-        cy=cameras.cy[first],
-        distortion=cameras.distortion[first],
-        width=cameras.width,
-        height=cameras.height,
-        ndc=cameras.ndc,
+    return _posed_like_the_first(
+        cameras, trajectory.spiral_poses_at(cameras.c2w.astype(np.float64), depth_bounds, angles)
     )
 
 
