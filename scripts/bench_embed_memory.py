@@ -134,7 +134,7 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
                 loss, _ = deferred.direct_objective(
                     fn,
                     image_loss,
-                    lambda r, t: wm_step.patch_loss(cfg, r, t),
+                    lambda r, t: objective.patch_loss(cfg, r, t),
                     p,
                     d,
                     (batch["rays_o"], batch["rays_d"]),

@@ -25,6 +25,7 @@ from mnerf_jax.watermark import deferred as D
 from mnerf_jax.watermark import embed as E
 from mnerf_jax.watermark import inputs as EI
 from mnerf_jax.watermark import model as watermark
+from mnerf_jax.watermark import objective as O
 from mnerf_jax.watermark import run as wm_run
 from mnerf_jax.watermark import step as S
 
@@ -302,7 +303,7 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
         )
         return loss, {}
 
-    ploss = functools.partial(S.patch_loss, cfg)
+    ploss = functools.partial(O.patch_loss, cfg)
     layout = D.patch_layout(h, w, size)
     index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
     _, _, image, g_params, g_dec = jax.jit(
@@ -907,7 +908,7 @@ def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
     layout = D.patch_layout(h, w, 6)
     index, owner = jnp.asarray(layout.index), jnp.asarray(layout.owner)
     target_image = targets.reshape(h, w, 3)
-    ploss = functools.partial(S.patch_loss, cfg)
+    ploss = functools.partial(O.patch_loss, cfg)
 
     def objective(id_arr, message):
         fn = S.render_patch_fn(spec, geometry, id_arr)
@@ -963,10 +964,10 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
     g_plain = jax.grad(weighted, argnums=(0, 1))(renders, dec, uniform)
     for power in (0.0, 1.0, 2.0):
         cfg = wm_config(id_loss_power=power, lambda_key=0.0)
-        term, bce, key = S.message_loss(cfg, decode, renders, dec, message)
+        term, bce, key = O.message_loss(cfg, decode, renders, dec, message)
         np.testing.assert_allclose([term, bce], [per_id.mean()] * 2, rtol=1e-5)
         assert float(key) == 0.0  # lambda_key = 0: no key term
-        g_r, g_p = jax.grad(lambda r, p, c=cfg: S.message_loss(c, decode, r, p, message)[0], argnums=(0, 1))(
+        g_r, g_p = jax.grad(lambda r, p, c=cfg: O.message_loss(c, decode, r, p, message)[0], argnums=(0, 1))(
             renders, dec
         )
         w = per_id**power / np.sum(per_id**power)
@@ -977,7 +978,7 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
             ratio = np.abs(np.asarray(g_r)).sum((1, 2, 3)) / np.abs(np.asarray(g_plain[0])).sum((1, 2, 3))
             assert ratio[worst] > 1.0 > ratio[best]
     cfg = wm_config(id_loss_power=2.0, lambda_key=0.0)
-    one, _, _ = S.message_loss(cfg, decode, renders[:1], dec, message[:1])
+    one, _, _ = O.message_loss(cfg, decode, renders[:1], dec, message[:1])
     np.testing.assert_allclose(one, per_id[0], rtol=1e-5)
     with pytest.raises(MnerfError, match="id_loss_power"):
         wm_config(id_loss_power=-1.0)
@@ -1002,15 +1003,15 @@ def test_key_term_is_the_key_cross_entropy_with_its_gradient_to_renders_and_deco
     g_direct = jax.grad(direct, argnums=(0, 1))(renders, dec)
     for power in (0.0, 1.0):
         cfg = wm_config(id_loss_power=power, lambda_key=0.5)
-        key = S.message_loss(cfg, decode, renders, dec, keys[ids], keys, ids)[2]
+        key = O.message_loss(cfg, decode, renders, dec, keys[ids], keys, ids)[2]
         np.testing.assert_allclose(key, direct(renders, dec), rtol=1e-5)
         g = jax.grad(
-            lambda r, p, c=cfg: S.message_loss(c, decode, r, p, keys[ids], keys, ids)[2], argnums=(0, 1)
+            lambda r, p, c=cfg: O.message_loss(c, decode, r, p, keys[ids], keys, ids)[2], argnums=(0, 1)
         )(renders, dec)
         for got, want in zip(g, g_direct, strict=True):
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-8)
     with pytest.raises(ValueError, match="lambda_key"):
-        S.message_loss(wm_config(lambda_key=0.5), decode, renders, dec, keys[ids])
+        O.message_loss(wm_config(lambda_key=0.5), decode, renders, dec, keys[ids])
     with pytest.raises(MnerfError, match="lambda_key"):
         wm_config(lambda_key=-1.0)
 
@@ -1069,19 +1070,19 @@ def test_fidelity_budget_ramps_linearly_in_db_over_the_schedule(
     last = min(first + width, 1.0)
     cfg = wm_config(fidelity_psnr=start + rise, fidelity_psnr_start=start, fidelity_ramp=(first, last))
     cfg.check_ids()
-    budgets = [S.fidelity_budget_db(cfg, step, total) for step in range(0, total + 1, max(total // 97, 1))]
+    budgets = [O.fidelity_budget_db(cfg, step, total) for step in range(0, total + 1, max(total // 97, 1))]
     assert all(b1 <= b2 + 1e-9 for b1, b2 in zip(budgets, budgets[1:], strict=False))
     assert all(start - 1e-9 <= b <= start + rise + 1e-9 for b in budgets)
-    assert S.fidelity_budget_db(cfg, int(np.floor(first * total)), total) == start
+    assert O.fidelity_budget_db(cfg, int(np.floor(first * total)), total) == start
     after = int(np.ceil(last * total))
     if after > first * total:
-        assert S.fidelity_budget_db(cfg, after, total) == start + rise
+        assert O.fidelity_budget_db(cfg, after, total) == start + rise
     if last - first > 0.2 and total >= 100:
         middle = int(round((first + last) / 2 * total))
         expected = start + rise * (middle - first * total) / ((last - first) * total)
-        assert abs(S.fidelity_budget_db(cfg, middle, total) - expected) < 1e-6
+        assert abs(O.fidelity_budget_db(cfg, middle, total) - expected) < 1e-6
     plain = wm_config(fidelity_psnr=start)  # no ramp: the one budget throughout
-    assert {S.fidelity_budget_db(plain, step, total) for step in (0, total // 2, total)} == {start}
+    assert {O.fidelity_budget_db(plain, step, total) for step in (0, total // 2, total)} == {start}
 
 
 def test_fidelity_ramp_is_checked() -> None:
@@ -1160,9 +1161,9 @@ def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
         fn = S.make_image_loss(spec, jax.random.PRNGKey(4), message, target_image, dec, None, ref)
         return float(fn(image, dec["params"])[0])
 
-    assert S.uses_clean_renders(wm_config(clean_negative="clean_model"))
-    assert not S.uses_clean_renders(wm_config(clean_negative="clean_model", lambda_clean=0.0))
-    assert not S.uses_clean_renders(WatermarkConfig())
+    assert O.uses_clean_renders(wm_config(clean_negative="clean_model"))
+    assert not O.uses_clean_renders(wm_config(clean_negative="clean_model", lambda_clean=0.0))
+    assert not O.uses_clean_renders(WatermarkConfig())
     np.testing.assert_allclose(
         loss("clean_model", target, reference), loss("ground_truth", reference, None), rtol=1e-6
     )
@@ -1224,8 +1225,8 @@ def test_anchor_term_holds_the_decoders_clean_reads_to_the_starting_decoders() -
         loss, aux = fn(image, params)
         return float(loss), float(aux["anchor"])
 
-    assert S.uses_anchors(wm_config(lambda_anchor=0.5)) and not S.uses_anchors(WatermarkConfig())
-    assert not S.uses_anchors(wm_config(lambda_anchor=0.5, anchor_images=0))
+    assert O.uses_anchors(wm_config(lambda_anchor=0.5)) and not O.uses_anchors(WatermarkConfig())
+    assert not O.uses_anchors(wm_config(lambda_anchor=0.5, anchor_images=0))
     assert term(dec["params"])[1] == 0.0
     loss_on, anchor = term(moved)
     loss_off, _ = term(moved, lambda_anchor=0.0)

@@ -188,7 +188,7 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
 ):
     from mnerf_jax.core import config
     from mnerf_jax.watermark.deferred import patch_layout
-    from mnerf_jax.watermark.step import fidelity_budget_db
+    from mnerf_jax.watermark.objective import fidelity_budget_db
 
     cfg = config.load_preset("embed_cpu_quality").watermark
     base = config.load_preset("embed_cpu").watermark

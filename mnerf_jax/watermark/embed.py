@@ -68,14 +68,9 @@ from mnerf_jax.watermark import sample_cache
 from mnerf_jax.watermark.deferred import patch_layout, tiling_patch_size, whole_view_layout
 from mnerf_jax.watermark.inputs import check_rgb_images, clean_references
 from mnerf_jax.watermark.loop import EmbedLoop, EmbedResult, seed_budgets
+from mnerf_jax.watermark.objective import uses_anchors, uses_clean_renders
 from mnerf_jax.watermark.run import WM_KIND, EmbedError
-from mnerf_jax.watermark.step import (
-    EmbedState,
-    make_optimizer,
-    total_steps,
-    uses_anchors,
-    uses_clean_renders,
-)
+from mnerf_jax.watermark.step import EmbedState, make_optimizer, total_steps
 
 # The embedding run: sources, config, setting up the loop (embed_loop; the jitted step and its optimiser:
 # wm_step).

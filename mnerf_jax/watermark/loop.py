@@ -30,18 +30,9 @@ from mnerf_jax.watermark import sample_cache
 from mnerf_jax.watermark import time_budget as embed_budget
 from mnerf_jax.watermark.deferred import PatchLayout
 from mnerf_jax.watermark.inputs import anchor_images, step_batch, step_choice
+from mnerf_jax.watermark.objective import fidelity_budget_db, uses_anchors, uses_fidelity
 from mnerf_jax.watermark.run import DECODER_FILE, META_FILE, STATE_VERSION, WM_KIND, EmbedError
-from mnerf_jax.watermark.step import (
-    EmbedState,
-    StepSpec,
-    embed_step,
-    fidelity_budget_db,
-    phase_of,
-    step_config,
-    total_steps,
-    uses_anchors,
-    uses_fidelity,
-)
+from mnerf_jax.watermark.step import EmbedState, StepSpec, embed_step, phase_of, step_config, total_steps
 
 # The sample-buffer site of the embedding's patch renders (budgets.BudgetPolicy).
 BUDGET_SITE = "embed_patch"
@@ -124,7 +115,7 @@ class EmbedLoop:
     progress: bool
     on_step: Callable[[int, dict[str, float]], None] | None
     vgg: Any
-    references: np.ndarray | None = None  # clean renders of the training views (wm_step.uses_clean_renders)
+    references: np.ndarray | None = None  # clean renders of the training views (objective.uses_clean_renders)
     clock: embed_budget.BudgetClock | None = None  # watermark.time_budget.minutes, when set
     cache: sample_cache.SampleCache | None = (
         None  # watermark.schedule.cache_source: the fitted field's samples
