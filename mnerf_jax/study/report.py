@@ -14,10 +14,10 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from mnerf_jax.core import rundir
 from mnerf_jax.study import report_plots, report_tables
 from mnerf_jax.study.report_stats import Row
 from mnerf_jax.study.report_tables import METRICS, MISSING, comparisons, seeds_line
-from mnerf_jax.study.results import write_text_atomic
 
 REPORT_FILE = "report.md"
 FIGURES_DIR = "figures"
@@ -179,5 +179,5 @@ def write_report(
     for old in figures.glob("*.png"):
         old.unlink()
     path = out / REPORT_FILE
-    write_text_atomic(path, to_markdown(out, rows, name, spec, command))
+    rundir.write_text_atomic(path, to_markdown(out, rows, name, spec, command))
     return path

@@ -16,8 +16,6 @@ import csv
 import io
 import json
 import math
-import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -300,17 +298,6 @@ def columns_of(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     return [*fixed, *attack, *PAPER_COLUMNS, "error"]
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def to_csv(rows: Sequence[Mapping[str, Any]]) -> str:
     columns = columns_of(rows)
     buffer = io.StringIO()
@@ -380,6 +367,6 @@ def write_tables(spec: StudySpec, out: Path) -> list[dict[str, Any]]:
     columns = columns_of(rows)
     rows = [{c: r.get(c) for c in columns} for r in rows]  # tidy: every row has every column
     rundir.write_json_atomic(out / "results.json", rows)
-    write_text_atomic(out / "results.csv", to_csv(rows))
-    write_text_atomic(out / "results.md", to_markdown(spec, rows))
+    rundir.write_text_atomic(out / "results.csv", to_csv(rows))
+    rundir.write_text_atomic(out / "results.md", to_markdown(spec, rows))
     return rows
