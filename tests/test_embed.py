@@ -558,15 +558,29 @@ def test_recorded_watermark_settings_older_than_todays_are_named(
     )  # --set: neither value used
     assert E.watermark_defaults_drift(tmp_path / "missing") == []  # embed itself says what is wrong
     base = ["embed", "--num-ids", "2", "--bits", "8", "--decoder", tiny.decoder, "--steps", "0", "--quiet"]
-    code, _, err = mnerf(*base, "--from", old, "--out", tmp_path / "wm")
+    code, _, err = mnerf(*base, "--from", old, "--out", tmp_path / "wm", "--config", "run")
     assert code == 0 and "lr_decoder 0.0001 (today 0.001)" in err and "--config PRESET" in err
     assert (
         json.loads((tmp_path / "wm" / "config.json").read_text())["watermark"]["optim"]["lr_decoder"] == 1e-4
     )
     code, _, err = mnerf(
-        *base, "--from", old, "--out", tmp_path / "w2", "--set", "watermark.optim.lr_decoder=2e-3"
+        *base,
+        "--from",
+        old,
+        "--out",
+        tmp_path / "w2",
+        "--set",
+        "watermark.optim.lr_decoder=2e-3",
+        "--config",
+        "run",
     )
     assert code == 0 and "note:" not in err, err
+    # The default (--config auto) takes the fit preset's section of today, and says so.
+    code, _, err = mnerf(*base, "--from", old, "--out", tmp_path / "w3")
+    assert code == 0 and "note:" not in err and "the procedural preset's embedding" in err, err
+    assert (
+        json.loads((tmp_path / "w3" / "config.json").read_text())["watermark"]["optim"]["lr_decoder"] == 1e-3
+    )
     # --config takes today's section (resolve_config is what the command calls with it).
     assert E.resolve_config(E.load_source(old), "procedural", [], 2, 8).watermark.optim.lr_decoder == 1e-3
 

@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from mnerf_jax.core import embed_defaults
+
 NAME = "embed"
 HELP = (
     "Embed N keyed watermark messages into a fitted TensoRF run; writes a watermarked run "
@@ -27,7 +29,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-ids", type=int, required=True, metavar="N", help="number of watermark IDs")
     parser.add_argument("--bits", type=int, required=True, metavar="L", help="message length in bits")
     parser.add_argument(
-        "--config", default=None, help="preset whose [watermark] section to use (default: the run's)"
+        "--config",
+        default=embed_defaults.AUTO,
+        metavar="PRESET",
+        help="the embedding's settings: auto (default: chosen from the fitted run's image size, scene, "
+        "number of IDs and the device, printed at the start), paper (the paper's method), run (the "
+        "[watermark] section the fitted run recorded), or a preset name or TOML file",
     )
     parser.add_argument(
         "--set",
@@ -77,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     from mnerf_jax.evaluation import watermarked as wm_eval
     from mnerf_jax.watermark import embed
 
-    if args.config is None and not args.resume:
+    if args.config == embed_defaults.FROM_RUN and not args.resume:
         drift = embed.watermark_defaults_drift(args.source, args.set)
         if drift:
             print(

@@ -44,6 +44,7 @@ registered with ``run.load_run``, the keys and decoder, choosing the ID to rende
 from __future__ import annotations
 
 import dataclasses
+import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
@@ -53,7 +54,7 @@ import jax
 import jax.numpy as jnp
 
 from mnerf_jax.core import config as config_lib
-from mnerf_jax.core import rundir
+from mnerf_jax.core import embed_defaults, rundir
 from mnerf_jax.core.checkpoint import CheckpointStore, check_compatible
 from mnerf_jax.core.config import Config
 from mnerf_jax.imaging import augment, losses
@@ -76,6 +77,9 @@ from mnerf_jax.watermark.step import EmbedState, make_optimizer, total_steps
 # wm_step).
 # ==========================================================================================================
 
+
+# run.json's record of the settings --config auto chose (replayed by --resume).
+AUTO_RECORD = "auto"
 
 # --------------------------------------------------------------------------------------------- sources
 
@@ -182,6 +186,29 @@ def watermark_defaults_drift(run_dir: str | Path, overrides: Iterable[str] = ())
     ]
 
 
+def choose_embedding(
+    source: runs.LoadedRun, scene: Any, out: Path, num_ids: int, resume: bool
+) -> embed_defaults.Choice | None:
+    """``--config auto``: when resuming ``out``, the choice it recorded, or None (the fitted run's section)
+    for a run embedded otherwise; else a choice made for this scene and machine (``core.embed_defaults``)."""
+    marker = rundir.read_marker(out) if resume and out.is_dir() else None
+    if marker is not None:
+        record = marker.get(AUTO_RECORD)
+        return None if record is None else embed_defaults.Choice.from_dict(record)
+    images = scene.split("train").images
+    facts = embed_defaults.SceneFacts(
+        fit_preset=source.config.name,
+        height=int(images.shape[1]),
+        width=int(images.shape[2]),
+        views=int(images.shape[0]),
+        backdrop=embed_defaults.backdrop_of(scene.kind, bool(scene.white_bg)),
+        num_ids=int(num_ids),
+        backend=jax.default_backend(),
+        memory_bytes=embed_defaults.free_memory_bytes(),
+    )
+    return embed_defaults.choose(facts)
+
+
 def _has_checkpoints(out: Path) -> bool:
     folder = out / "checkpoints"
     return folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())
@@ -213,7 +240,9 @@ def embed(
         ``decoder.npz`` (the decoder as fine-tuned with the field, then refitted alone in phase 3 when
         ``watermark.phase3.steps`` > 0), ``embed.json`` (progress).
       num_ids, bits: ``N`` IDs with ``L``-bit messages (the decoder must read ``L`` bits).
-      preset, overrides: the watermark config (``--config``, ``--set``).
+      preset, overrides: the watermark config (``--config``, ``--set``): a preset's ``[watermark]`` section;
+        None or ``"run"``: the section the fitted run recorded; ``"auto"``: chosen for the scene and the
+        machine (``core.embed_defaults``; printed, and recorded in ``run.json`` for ``--resume``).
       decoder_path: the decoder to start from (default: the shipped one for ``bits``); ``"fresh"``: a
         random-init decoder whitened on the scene's training images (``decoder_io.fresh_decoder``).
       data_path: the scene (default: the one the source run recorded).
@@ -224,6 +253,16 @@ def embed(
     started = time.perf_counter()  # the time budget's clock (watermark.time_budget.minutes)
     out = Path(out_dir)
     source = load_source(source_run)
+    scene = source.load_scene(data_path, splits=("train",))
+    split = scene.split("train")
+    check_rgb_images(split.images, f"{data_path or source.data_path or 'procedural scene'} (train split)")
+    choice = None
+    if preset == embed_defaults.AUTO:
+        choice = choose_embedding(source, scene, out, num_ids, resume)
+        if choice is not None:
+            preset, overrides = choice.preset, [*choice.settings, *overrides]
+    if preset in (embed_defaults.AUTO, embed_defaults.FROM_RUN):
+        preset = None
     config = resolve_config(source, preset, overrides, num_ids, bits)
     cfg = config.watermark
     fresh = decoder_path is not None and str(decoder_path) == decoder_io.FRESH
@@ -234,9 +273,8 @@ def embed(
         keys = keys_lib.load_keys(out, expect_bits=bits)  # a WMRUN without keys stops here
         if keys.num_ids != num_ids:
             raise EmbedError(f"{out} embeds {keys.num_ids} IDs, not --num-ids {num_ids}")
-    scene = source.load_scene(data_path, splits=("train",))
-    split = scene.split("train")
-    check_rgb_images(split.images, f"{data_path or source.data_path or 'procedural scene'} (train split)")
+    if choice is not None:  # said once the input has passed its checks
+        print(f"mnerf embed: {choice.describe()}", file=sys.stderr)
     if loaded is None:
         loaded = decoder_io.fresh_decoder(bits, split.images, seed=cfg.seed, wavelet=cfg.reading.wavelet)
     decoder_source = decoder_io.FRESH if fresh else str(Path(loaded.path).resolve())
@@ -309,6 +347,7 @@ def embed(
                     "variant": cfg.variant,
                     "decoder_source": decoder_source,
                     "decoder_source_fingerprint": loaded.fingerprint,
+                    **({AUTO_RECORD: choice.to_dict()} if choice is not None else {}),
                 },
             )
             keys_lib.save_keys(out, keys)
