@@ -112,6 +112,47 @@ def write_torch_zip(path: Path, obj: object, storages: list[Storage]) -> None:
         z.writestr("archive/version", "3\n")
 
 
+class StorageView:
+    """``size`` values of ``root`` from ``offset``: a legacy file's storage view."""
+
+    def __init__(self, key: str, root: Storage, offset: int, size: int):
+        self.key, self.root, self.offset, self.size = key, root, offset, size
+
+
+class LegacyPickler(TorchPickler):
+    """Persistent ids as torch's legacy format writes them: ``(..., root numel, view metadata)``."""
+
+    def persistent_id(self, obj: object) -> tuple | None:
+        if isinstance(obj, Storage):
+            return ("storage", _STORAGE_CLASSES[obj.flat.dtype], obj.key, "cpu", int(obj.flat.size), None)
+        if isinstance(obj, StorageView):
+            root = obj.root
+            kind = _STORAGE_CLASSES[root.flat.dtype]
+            return ("storage", kind, root.key, "cpu", int(root.flat.size), (obj.key, obj.offset, obj.size))
+        return None
+
+
+def write_torch_legacy(path: Path, obj: object, storages: list[Storage]) -> None:
+    """torch's legacy ``torch.save``: magic number, protocol, system info, the object, the sorted storage
+    keys, then each storage as an int64 count and its values."""
+    buffer = io.BytesIO()
+    sys_info = {
+        "protocol_version": 1001,
+        "little_endian": True,
+        "type_sizes": {"short": 2, "int": 4, "long": 4},
+    }
+    for record in (0x1950A86A20F9469CFC6C, 1001, sys_info):
+        pickle.dump(record, buffer, protocol=2)
+    LegacyPickler(buffer, protocol=2).dump(obj)
+    keys = sorted(s.key for s in storages)
+    pickle.dump(keys, buffer, protocol=2)
+    by_key = {s.key: s for s in storages}
+    for key in keys:
+        flat = by_key[key].flat
+        buffer.write(struct.pack("<q", flat.size) + flat.astype(flat.dtype.newbyteorder("<")).tobytes())
+    path.write_bytes(buffer.getvalue())
+
+
 def save_state_dict(path: Path, state: dict) -> Path:
     storages: list[Storage] = []
     write_torch_zip(path, contiguous_tensors(state, storages), storages)
@@ -419,6 +460,11 @@ def test_torch_zip_reads_back_what_was_written(tmp_path: Path) -> None:
         np.testing.assert_array_equal(flat[f"state_dict.{key}"], value)
     np.testing.assert_array_equal(flat["state_dict.b.transposed"], base.T)
     np.testing.assert_array_equal(flat["state_dict.b.row"], base[1])
+    # The same in torch's legacy format, the row a view of a storage as legacy files write them.
+    tensors["state_dict"]["b.row"] = Tensor(StorageView("view", shared, 4, 4), 0, (4,), (1,))
+    write_torch_legacy(tmp_path / "legacy.pth.tar", tensors, storages)
+    legacy = read_state_dict(tmp_path / "legacy.pth.tar")
+    assert list(legacy) == list(flat) and all(np.array_equal(legacy[k], v) for k, v in flat.items())
     # A .npz of the same names reads the same.
     np.savez(tmp_path / "w.npz", **plain)
     npz = read_state_dict(tmp_path / "w.npz")
@@ -439,9 +485,20 @@ def test_hostile_legacy_and_foreign_files_are_refused_in_one_line(tmp_path: Path
             call()
         assert len(str(err.value).splitlines()) == 1
     assert not marker.exists()
-    (tmp_path / "legacy.pth.tar").write_bytes(b"\x80\x02\x8a\x0alegacy")
-    with pytest.raises(MnerfError, match="legacy .* torch.save"):
-        read_state_dict(tmp_path / "legacy.pth.tar")
+    # In the legacy format too: the object's pickle may not name os.system.
+    legacy = io.BytesIO()
+    for record in (0x1950A86A20F9469CFC6C, 1001, {"little_endian": True}):
+        pickle.dump(record, legacy, protocol=2)
+    (tmp_path / "evil-legacy.pth").write_bytes(legacy.getvalue() + evil)
+    with pytest.raises(MnerfError, match="refusing to load os.system"):
+        read_state_dict(tmp_path / "evil-legacy.pth")
+    assert not marker.exists()
+    (tmp_path / "tar.pth").write_bytes(b"\0" * 257 + b"ustar" + b"\0" * 250)
+    with pytest.raises(MnerfError, match="oldest .tar. format.*torch.save"):
+        read_state_dict(tmp_path / "tar.pth")
+    (tmp_path / "pickled.pth").write_bytes(pickle.dumps([1, 2], protocol=2))
+    with pytest.raises(MnerfError, match="not a PyTorch file"):
+        read_state_dict(tmp_path / "pickled.pth")
     (tmp_path / "text.pth").write_text("hello")
     with pytest.raises(MnerfError, match="neither a PyTorch zip"):
         read_state_dict(tmp_path / "text.pth")

@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="ARCHITECTURE=WEIGHTS",
         help="add a row for one of CompressAI's learned codecs (bmshj2018-factorized, cheng2020-anchor, "
-        "cheng2020-attn) run in JAX from its weights (a torch.save zip of the state dict, or .npz), named "
+        "cheng2020-attn) run in JAX from its weights (a torch.save file of the state dict, or .npz), named "
         "ARCHITECTURE-qN; repeatable; alone, with the regen suite's stand-ins",
     )
     parser.add_argument(
