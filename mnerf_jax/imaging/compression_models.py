@@ -344,7 +344,7 @@ class CompressionModel:
 
 
 def load(architecture: str, path: str | Path) -> CompressionModel:
-    """The CompressAI model ``architecture`` with the weights at ``path`` (a ``torch.save`` zip of its
+    """The CompressAI model ``architecture`` with the weights at ``path`` (what ``torch.save`` writes of its
     state dict, or ``.npz``), checked by tracing the forward on a 64×64 input: CompressionModelError, in one
     line naming the file, for a missing weight (the first the forward reads) or weights of wrong shapes."""
     _check_architecture(architecture)
