@@ -307,3 +307,32 @@ def test_attack_regen_hook_without_clean_renders_loses_nothing(tiny_eval, mnerf,
     assert path.read_bytes() == before
     code, _, err = mnerf(*args, "--suite", "peers")
     assert code == 2 and "give one" in err
+
+
+def test_attack_codec_model_row_from_a_torch_weights_file(tiny_eval, mnerf, tmp_path) -> None:
+    import shutil
+
+    from test_compression_models import random_factorized, save_state_dict
+
+    runs, _ = tiny_eval
+    run = tmp_path / "wm"
+    shutil.copytree(runs.wm, run, ignore=shutil.ignore_patterns("checkpoints", "tb", "eval-test-attacks*"))
+    weights = save_state_dict(
+        tmp_path / "bmshj2018-factorized-prior-3-5c6f152b.pth.tar",
+        random_factorized(np.random.default_rng(0)),
+    )
+    args = ("attack", "--run", run, "--attacks", "jpeg90", "--views", "2", "--quiet")
+    code, out, err = mnerf(*args, "--codec-model", f"bmshj2018-factorized={weights}")
+    assert code == 0, err
+    result = json.loads((run / "eval-test-attacks.json").read_text())
+    assert result["order"] == ["none", "jpeg90", "bmshj2018-factorized-q3"]
+    row = result["attacks"]["bmshj2018-factorized-q3"]
+    assert (
+        row["family"] == "regen" and "N 8, M 12" in row["description"] and 0 <= row["bit_accuracy_mean"] <= 1
+    )
+    assert "bmshj2018-factorized-q3" in out
+    # A weights file of another architecture: one line naming the first missing weight.
+    code, _, err = mnerf(*args, "--codec-model", f"cheng2020-anchor={weights}")
+    assert code == 2 and "lack g_a.0.conv1.weight" in err and len(err.strip().splitlines()) == 1
+    code, out, _ = mnerf("attack", "--list")
+    assert code == 0 and "--codec-model" in out

@@ -56,6 +56,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "[B, H, W, 3] (module importable, or path/to/file.py); alone, with the regen suite's stand-ins",
     )
     parser.add_argument(
+        "--codec-model",
+        action="append",
+        default=[],
+        metavar="ARCHITECTURE=WEIGHTS",
+        help="add a row for one of CompressAI's learned codecs (bmshj2018-factorized, cheng2020-anchor, "
+        "cheng2020-attn) run in JAX from its weights (a torch.save file of the state dict, or .npz), named "
+        "ARCHITECTURE-qN; repeatable; alone, with the regen suite's stand-ins",
+    )
+    parser.add_argument(
         "--views",
         type=int,
         default=0,
@@ -124,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         suite=args.suite,
         regen=args.regen,
+        codec_models=args.codec_model,
         **search_options.of_args(args),
     )
     path = wm_attacks.attacks_path(args.run, args.split, result["suite"])
@@ -167,6 +177,7 @@ def run_model_suite(args: argparse.Namespace) -> int:
             ("--attacks", args.attacks),
             ("--strength", args.strength),
             ("--regen", args.regen),
+            ("--codec-model", args.codec_model),
         )
         if value
     ]

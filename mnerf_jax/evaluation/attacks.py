@@ -159,12 +159,15 @@ def choose_attacks(
     names: Sequence[str] | None = None,
     strength: str | None = None,
     regen: str | None = None,
+    codec_models: Sequence[str] = (),
 ) -> tuple[list[Attack], str | None]:
     """``(attacks, suite label)`` to run, checked before any work: a ``suite``; or ``names``
     (:func:`attack_suites.resolve`: registry names, or augmentation names at ``strength``); or, with
     neither, the 14 augmentations at ``strength`` (default low; the command's old default). ``regen``
-    (``module:function``) adds that hook's row, to the ``regen`` suite's stand-ins when nothing else is
-    chosen. The label names the output file (None: ``eval-<split>-attacks.json``)."""
+    (``module:function``) adds that hook's row and ``codec_models`` (``ARCHITECTURE=PATH``: CompressAI's
+    codecs from the user's weights, :func:`attack_suites.codec_model_attack`) one row each, to the ``regen``
+    suite's stand-ins when nothing else is chosen. The label names the output file (None:
+    ``eval-<split>-attacks.json``)."""
     if suite and names:
         raise MnerfError("--suite and --attacks choose the attacks two ways: give one")
     if suite and strength:
@@ -174,13 +177,19 @@ def choose_attacks(
     if strength and strength not in augment.STRENGTHS:
         raise MnerfError(f"unknown attack strength {strength!r} (known: {', '.join(augment.STRENGTHS)})")
     hook = [attack_suites.hook_attack(regen)] if regen else []
+    hook += [attack_suites.codec_model_attack(spec) for spec in codec_models]
     if suite:
-        return attack_suites.suite(suite) + hook, suite
-    if names:
-        return attack_suites.resolve(names, strength or "low") + hook, None
-    if hook:
-        return attack_suites.suite("regen") + hook, "regen"
-    return attack_suites.resolve(augment.AUGMENTATION_NAMES, strength or "low"), None
+        chosen, label = attack_suites.suite(suite), suite
+    elif names:
+        chosen, label = attack_suites.resolve(names, strength or "low"), None
+    elif hook:
+        chosen, label = attack_suites.suite("regen"), "regen"
+    else:
+        return attack_suites.resolve(augment.AUGMENTATION_NAMES, strength or "low"), None
+    repeated = sorted({a.name for a in hook if [b.name for b in chosen + hook].count(a.name) > 1})
+    if repeated:
+        raise MnerfError(f"attack rows named twice: {', '.join(repeated)} (give each weights file once)")
+    return chosen + hook, label
 
 
 def _read(decoder: Any, wm: Any, images: np.ndarray, search: geometry_search.GeometrySearch) -> np.ndarray:
@@ -242,6 +251,7 @@ def evaluate_attacks(
     *,
     suite: str | None = None,
     regen: str | None = None,
+    codec_models: Sequence[str] = (),
     search: str | None = None,
     search_scales: tuple[float, ...] | None = None,
     search_degrees: tuple[float, ...] | None = None,
@@ -264,7 +274,7 @@ def evaluate_attacks(
     averages the searched rows).
     """
     run_dir = Path(run_dir)
-    attacks, label = choose_attacks(suite, names, strength, regen)
+    attacks, label = choose_attacks(suite, names, strength, regen, codec_models)
     keys, decoder = wm_run.load_keys_and_decoder(run_dir)
     saved = rundir.read_run_config(run_dir).watermark
     rule = decision.decision_rule(run_dir, saved.reading, decoder.fingerprint)

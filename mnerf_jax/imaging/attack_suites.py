@@ -10,8 +10,10 @@ composed attack ``a+b`` is exactly ``b`` applied to ``a``'s output. The paper's 
 
 Suites: ``codecs``, ``geometric``, ``photometric``, ``regen`` (offline stand-ins for regeneration by a
 model), ``peers`` (the list NeRF-watermarking peers report), ``paper`` (the 14 augmentations at Low /
-Medium / High and every pair at Low) and ``all``. :func:`hook_attack` wraps a user's function
-(``--regen module:function``), for a model this package does not ship.
+Medium / High and every pair at Low) and ``all``. :func:`codec_model_attack` runs CompressAI's learned codecs
+from the user's weights (``--codec-model ARCHITECTURE=PATH``, :mod:`imaging.compression_models`);
+:func:`hook_attack` wraps a user's function (``--regen module:function``), for a model this package does not
+ship.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import jax
 import numpy as np
 
 from mnerf_jax.imaging import attacks as A
-from mnerf_jax.imaging import augment
+from mnerf_jax.imaging import augment, compression_models
 from mnerf_jax.imaging.attacks import AttackError
 
 StageFn = Callable[[np.ndarray, int], np.ndarray]
@@ -383,6 +385,10 @@ def listing() -> str:
         for attack in suite(name):
             note = f"  [unavailable: {attack.unavailable}]" if attack.unavailable else ""
             lines.append(f"  {attack.name:<34} {attack.description}{note}")
+    lines.append(
+        "regen models (--codec-model ARCHITECTURE=WEIGHTS, CompressAI's weights): "
+        + ", ".join(compression_models.ARCHITECTURES)
+    )
     return "\n".join(lines)
 
 
@@ -444,3 +450,22 @@ def hook_attack(spec: str) -> Attack:
         return out
 
     return Attack(name, "hook", f"the user's regeneration function {spec}", (Stage(name, run),))
+
+
+def codec_model_attack(spec: str) -> Attack:
+    """A row for CompressAI's codec ``ARCHITECTURE=PATH`` (:mod:`imaging.compression_models`, weights the
+    user supplies), named ``ARCHITECTURE-qN`` (``qN`` from CompressAI's file names, else the file's stem);
+    deterministic (the seed is unused). AttackError in one line for a bad spec, file or weights."""
+    architecture, sep, path = spec.partition("=")
+    if not sep or not architecture or not path:
+        raise AttackError(
+            f"--codec-model takes ARCHITECTURE=PATH ({', '.join(compression_models.ARCHITECTURES)}), "
+            f"got {spec!r}"
+        )
+    model = compression_models.load(architecture.strip(), Path(path))
+    name = f"{model.architecture}-{compression_models.quality_label(path)}"
+    description = (
+        f"CompressAI {model.architecture} (N {model.n}, M {model.m}) from {Path(path).name}: "
+        "its eval forward's x_hat, 8-bit"
+    )
+    return Attack(name, "regen", description, (Stage(name, lambda x, seed: model(x)),))
