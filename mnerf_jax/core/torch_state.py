@@ -195,10 +195,15 @@ def read_torch_zip(zip_path: str | Path) -> dict[str, np.ndarray]:
         raise MnerfError(f"{zip_path} is not a readable zip archive ({err})") from None
     except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError) as err:
         raise MnerfError(f"{zip_path}: unreadable pickle ({type(err).__name__}: {err})") from None
+    return _tensors_of(obj, zip_path)
+
+
+def _tensors_of(obj: Any, path: str | Path) -> dict[str, np.ndarray]:
+    """The unpickled ``obj``'s tensors by dotted name; MnerfError when it holds none."""
     flat: dict[str, np.ndarray] = {}
     _flatten_tree(obj, "", flat)
     if not flat:
-        raise MnerfError(f"{zip_path} holds no tensors")
+        raise MnerfError(f"{path} holds no tensors")
     return flat
 
 
@@ -279,11 +284,7 @@ def read_torch_legacy(path: str | Path) -> dict[str, np.ndarray]:
                 root.data = np.frombuffer(raw, dtype, count=numel).astype(root.dtype)
     except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError) as err:
         raise MnerfError(f"{path}: unreadable pickle ({type(err).__name__}: {err})") from None
-    flat: dict[str, np.ndarray] = {}
-    _flatten_tree(obj, "", flat)
-    if not flat:
-        raise MnerfError(f"{path} holds no tensors")
-    return flat
+    return _tensors_of(obj, path)
 
 
 LEGACY_HINT = (
