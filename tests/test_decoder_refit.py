@@ -20,7 +20,7 @@ from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.data import trajectory
 from mnerf_jax.data.types import Cameras, NDCSpace
 from mnerf_jax.reader import decoder as decoder_lib
-from mnerf_jax.reader import decoder_io, dwt
+from mnerf_jax.reader import decoder_io, dwt, read_window
 from mnerf_jax.watermark import embed as E
 from mnerf_jax.watermark import phase3 as decoder_refit
 from mnerf_jax.watermark import run as wm_run
@@ -341,6 +341,35 @@ def test_a_field_the_time_budget_ends_still_gets_phase_three(
     monkeypatch.undo()
     again = E.embed(tiny.fit, run, 2, 8, overrides=overrides, resume=True, **args)
     assert again.steps == 9 and not again.stopped_by_budget
+
+
+def test_a_refit_set_kept_as_its_reads_steps_exactly_as_the_images() -> None:
+    # Without augmentations phase 3 keeps each image as its read window at max_side, as it is and rounded to
+    # 8 bits (reads_of): the step then reads the very pixels it would have cut from the whole images.
+    data, variables = _two_class_set()
+    cfg = wm_config(
+        phase3_steps=10, phase3_batch=8, augment_prob=0.0, read_window=0.72, read_max_side=16, lambda_key=0.2
+    )
+    assert decoder_refit.keeps_reads_only(cfg)
+    assert not decoder_refit.keeps_reads_only(wm_config(augment_prob=0.5))
+    reads = decoder_refit.reads_of(data.negatives, cfg)
+    assert reads.shape == (len(data.negatives), 2, 16, 16, 3)
+    window, background, _, max_side = read_window.of_config(cfg.reading)
+    for kept, image in ((reads[:, 0], data.negatives), (reads[:, 1], np.round(data.negatives * 255) / 255)):
+        expected = read_window.read_window(jnp.asarray(image), window, background, max_side=max_side)
+        np.testing.assert_allclose(kept, np.asarray(expected), atol=1e-6)
+    compact = decoder_refit.RefitSet(
+        np.stack([decoder_refit.reads_of(r, cfg) for r in data.renders]), data.messages, reads, compact=True
+    )
+    step = decoder_refit.make_refit_step(cfg, variables)
+    opt_state = decoder_refit.refit_optimizer(cfg).init(variables["params"])
+    outs = [
+        step(variables["params"], opt_state, jax.random.key(7), jax.tree.map(jnp.asarray, d), 0, 10)
+        for d in (data, compact)
+    ]
+    np.testing.assert_allclose(float(outs[1][2]), float(outs[0][2]), rtol=1e-5)
+    for x, y in zip(jax.tree.leaves(outs[0][0]), jax.tree.leaves(outs[1][0]), strict=True):
+        np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-4, atol=1e-6)
 
 
 def test_the_refit_set_reuses_clean_renders_of_the_training_views_it_is_given(tiny: TinyRuns) -> None:

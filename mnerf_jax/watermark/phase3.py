@@ -14,6 +14,7 @@ docs/experiments/).
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -43,19 +44,61 @@ NEGATIVES_PER_BATCH_DIVISOR = 4
 VIEW_DENSITIES = get_args(ViewDensity)  # novel_cameras' spreads of the elevation
 
 
+# Views rendered (every ID) and reduced to what the decoder reads at a time: the full-size renders held.
+VIEWS_PER_CHUNK = 8
+
+
 @flax.struct.dataclass
 class RefitSet:
     """What phase 3 trains on.
 
     Attributes:
-      renders: ``[N, V, H, W, 3]`` float32 in [0, 1], view ``v`` rendered with ID ``n``.
+      renders: ``[N, V, H, W, 3]`` float32 in [0, 1], view ``v`` rendered with ID ``n``; ``compact``:
+        ``[N, V, 2, S, S', 3]``, what the decoder reads of each (:func:`reads_of`).
       messages: ``[N, L]`` 0/1, each ID's key.
-      negatives: ``[G, H, W, 3]`` unwatermarked images (decoded against ½).
+      negatives: ``[G, H, W, 3]`` unwatermarked images (decoded against ½); ``compact``: ``[G, 2, S, S', 3]``.
+      compact: the images are kept as their reads (:func:`keeps_reads_only`), not as images.
     """
 
     renders: Any
     messages: Any
     negatives: Any
+    compact: bool = flax.struct.field(pytree_node=False, default=False)
+
+
+def keeps_reads_only(cfg: WatermarkConfig) -> bool:
+    """True when phase 3 can keep each image as what the decoder reads of it (its read window at
+    ``reading.max_side``), so that its memory follows the read's size, not the images': when no
+    augmentation stands between an image and its read (``augment.prob`` 0)."""
+    return not (cfg.augment.prob > 0 and cfg.augment.per_step > 0)
+
+
+def reads_of(images: np.ndarray, cfg: WatermarkConfig) -> np.ndarray:
+    """``[B, 2, S, S', 3]`` float32: the read window (``reading.window`` at ``reading.max_side``) of each of
+    ``images [B, H, W, 3]`` as it is (``[:, 0]``) and rounded to 8 bits first (``[:, 1]``), as phase 3's
+    step reads an image of either kind; in chunks of :data:`VIEWS_PER_CHUNK` images."""
+    fraction, background, _, max_side = read_window.of_config(cfg.reading)
+    read = _window_reader(fraction, background, max_side)
+    parts = [
+        np.asarray(read(jnp.asarray(images[i : i + VIEWS_PER_CHUNK], jnp.float32)))
+        for i in range(0, len(images), VIEWS_PER_CHUNK)
+    ]
+    return np.concatenate(parts)
+
+
+@functools.cache
+def _window_reader(fraction: float, background: float | None, side: int) -> Callable[[jax.Array], jax.Array]:
+    """:func:`reads_of`'s jitted step for one reading setting (``read_window.of_config``'s values)."""
+
+    @jax.jit
+    def read(images: jax.Array) -> jax.Array:
+        rounded = jnp.round(images * 255.0) / 255.0
+        both = jnp.stack([images, rounded], axis=1)  # [B, 2, H, W, 3]
+        flat = both.reshape(-1, *images.shape[1:])
+        out = read_window.read_window(flat, fraction, background, max_side=side)
+        return out.reshape(images.shape[0], 2, *out.shape[1:])
+
+    return read
 
 
 def novel_cameras(
@@ -177,6 +220,8 @@ def render_refit_set(
             )
         )
     to_draw = sets if training_renders is None else sets[1:]
+    compact = keeps_reads_only(cfg)
+    keep = (lambda x: reads_of(np.asarray(x), cfg)) if compact else (lambda x: np.asarray(x, np.float32))  # noqa: E731
     views = sum(len(c) for c in to_draw)
     bar = tqdm(
         total=views * keys.num_ids,
@@ -187,19 +232,25 @@ def render_refit_set(
     )
     tick = lambda _, rgb: bar.update(rgb.shape[-1] // 3)  # noqa: E731  (a view's renders: one per ID)
     try:
-        parts = [] if training_renders is None else [training_renders]
-        parts += [wm_run.render_every_id(run, cams, on_view=tick) for cams in to_draw]
+        parts = [] if training_renders is None else [{n: keep(r) for n, r in training_renders.items()}]
+        for cams in to_draw:  # a few views at a time: only their full-size renders are held at once
+            for first in range(0, len(cams), VIEWS_PER_CHUNK):
+                chunk = range(first, min(first + VIEWS_PER_CHUNK, len(cams)))
+                rendered = wm_run.render_every_id(run, cams, chunk, on_view=tick)
+                parts.append({n: keep(r) for n, r in rendered.items()})
     finally:
         bar.close()
     renders = np.stack([np.concatenate([part[n] for part in parts]) for n in range(keys.num_ids)])
-    negatives = [np.asarray(ground_truth, np.float32)]
+    negatives = [keep(ground_truth)]
     if clean_model is not None and clean_renders is not None:
-        negatives.append(np.asarray(clean_renders, np.float32))  # the training views' (sets[0]), given
+        negatives.append(keep(clean_renders))  # the training views' (sets[0]), given
     if clean_model is not None:
-        to_render = sets if clean_renders is None else sets[1:]
-        negatives += [np.stack(runs.render_views(clean_model, cams)).astype(np.float32) for cams in to_render]
+        for cams in sets if clean_renders is None else sets[1:]:
+            for first in range(0, len(cams), VIEWS_PER_CHUNK):
+                chunk = range(first, min(first + VIEWS_PER_CHUNK, len(cams)))
+                negatives.append(keep(np.stack(runs.render_views(clean_model, cams, chunk))))
     messages = np.asarray(keys.messages, np.uint8)
-    return RefitSet(renders.astype(np.float32), messages, np.concatenate(negatives))
+    return RefitSet(renders.astype(np.float32), messages, np.concatenate(negatives), compact)
 
 
 def refit_rate(cfg: WatermarkConfig, step: Any, total: Any) -> jax.Array:
@@ -250,8 +301,11 @@ def make_refit_step(
     window, background, _, max_side = read_window.of_config(cfg.reading)  # phase 3 reads as phase 2
     tx = refit_optimizer(cfg)
 
-    def prepare(key: jax.Array, images: jax.Array) -> jax.Array:
+    def prepare(key: jax.Array, images: jax.Array, compact: bool) -> jax.Array:
         k_round, k_aug = jax.random.split(key)
+        if compact:  # [B, 2, S, S', 3]: each image's read as it is and rounded (reads_of), drawn as below
+            rounded = jax.random.bernoulli(k_round, 0.5, (images.shape[0],)).astype(jnp.int32)
+            return dwt.ll2(images[jnp.arange(images.shape[0]), rounded], cfg.reading.wavelet)
         rounded = jnp.round(images * 255.0) / 255.0
         images = jnp.where(jax.random.bernoulli(k_round, 0.5, (images.shape[0], 1, 1, 1)), rounded, images)
         if cfg.augment.prob > 0 and cfg.augment.per_step > 0:
@@ -277,10 +331,12 @@ def make_refit_step(
         k_id, k_view, k_neg, k_pos, k_clean = jax.random.split(key, 5)
         n_ids, n_views = data.renders.shape[:2]
         ids = jax.random.randint(k_id, (batch,), 0, n_ids)
-        seen = prepare(k_pos, data.renders[ids, jax.random.randint(k_view, (batch,), 0, n_views)])
+        seen = prepare(
+            k_pos, data.renders[ids, jax.random.randint(k_view, (batch,), 0, n_views)], data.compact
+        )
         if n_neg:  # an empty batch would reach the augmentations' convolutions (a zero group count)
             negatives = data.negatives[jax.random.randint(k_neg, (n_neg,), 0, data.negatives.shape[0])]
-            clean = prepare(k_clean, negatives)
+            clean = prepare(k_clean, negatives, data.compact)
         messages = data.messages.astype(jnp.float32)
 
         def loss_fn(p: PyTree) -> jax.Array:
