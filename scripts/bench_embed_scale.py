@@ -31,7 +31,8 @@ Figures per (side, IDs):
   (with ``--phase3-views`` views); ``device_peak_mb`` the accelerator's peak where it reports one.
 - ``projected_s``: the whole default embedding at this size: start-up, the schedule's field steps at the
   medians plus their checkpoints, phase 3's set and steps, ended by the time budget as the loop ends it
-  (``budget_ends_field``: the field stops before its schedule; ``field_steps_projected`` where).
+  (``budget_ends_field``: the field stops before its schedule; ``field_steps_projected`` where, and
+  ``phase3_steps_projected`` phase 3's schedule sized to the minutes left); ``unbudgeted_s`` without it.
 - ``choice``: the auto choice (``Choice.to_dict()``; None with another ``--config``), ``schedule``,
   ``ids_per_step``, ``cache_source``, ``time_budget_min``.
 
@@ -99,6 +100,7 @@ ROW_KEYS = (
     "projected_min",
     "unbudgeted_s",
     "field_steps_projected",
+    "phase3_steps_projected",
     "budget_ends_field",
 )
 
@@ -219,8 +221,13 @@ def measure(
 
     def refit_set(inner: Callable, *args: Any, **kwargs: Any) -> Any:
         result = inner(*args, **kwargs)
-        seen["refit_set_bytes"] = sum(int(np.asarray(a).nbytes) for a in (result.renders, result.negatives))
-        seen["refit_views"] = int(result.renders.shape[1])
+        renders, negatives = np.asarray(result.renders), np.asarray(result.negatives)
+        seen["refit_set_bytes"] = int(renders.nbytes + negatives.nbytes)
+        seen["refit_views"] = int(renders.shape[1])
+        # A novel view more: every ID's render of it and the clean model's (a negative).
+        seen["refit_view_bytes"] = int(
+            renders.nbytes // renders.shape[1] + negatives.nbytes // len(negatives)
+        )
         return result
 
     def view_renders(inner: Callable, run: Any, cameras: Any, *args: Any, **kwargs: Any) -> Any:
@@ -235,9 +242,9 @@ def measure(
 
         result = inner(run, cameras, *args, **{**kwargs, "on_view": on_view})
         passes = [b - a for a, b in zip(stamps[:-1], stamps[1:], strict=True)]
-        # Steady seconds per view: the passes after the first, per view they cover (the last call's: the
-        # novel views).
-        steady = sum(passes[1:]) / (len(passes) - 1) if len(passes) > 1 else sum(passes)
+        # Steady seconds per view: the median pass after the first (which compiles; so may a later one, as
+        # the sample budgets settle), times the passes per view (the last call's: the novel views).
+        steady = statistics.median(passes[1:]) if len(passes) > 1 else sum(passes)
         seen["view_s"][inner.__name__] = steady * len(passes) / max(len(cameras), 1)
         return result
 
@@ -317,8 +324,8 @@ def measure(
         "device_peak_mb": _device_peak_mb(),
     }
     if "refit_set_bytes" in seen:
-        per_view = seen["refit_set_bytes"] / seen["refit_views"]
-        row["phase3_set_mb_projected"] = _round(per_view * (views + cfg.phase3.views) / 2**20, 1)
+        extra = (cfg.phase3.views - (seen["refit_views"] - views)) * seen["refit_view_bytes"]
+        row["phase3_set_mb_projected"] = _round((seen["refit_set_bytes"] + extra) / 2**20, 1)
     row.update(project(row, cfg, seen, views))
     return row
 
@@ -337,21 +344,26 @@ def project(row: dict[str, Any], cfg: Any, seen: dict[str, Any], views: int) -> 
     field = [m1] * p1 + [m2] * p2
     budget = cfg.time_budget.minutes * 60.0 or None
     kept = cfg.phase3.reserve_min * 60.0 if (budget and cfg.phase3.steps) else 0.0
-    now = (row["startup_s"] or 0.0) + (row["compile_s"] or 0.0)
-    done = 0
-    for i, step_s in enumerate(field):
-        # The loop's test before a step: that step, the time kept for phase 3, a checkpoint and the reserve.
-        if budget and done and now + step_s + kept + save_s + clock_lib.RESERVE_S > budget:
-            break
-        now += step_s + (save_s if (i + 1) % every == 0 else 0.0)
-        done += 1
+
+    def field_end(limit: float | None) -> tuple[float, int]:
+        """Seconds at the field's end and its steps, within ``limit`` seconds as the loop ends it."""
+        now = (row["startup_s"] or 0.0) + (row["compile_s"] or 0.0)
+        done = 0
+        for step_s in field:
+            # The loop's test before a step: that step, the time kept for phase 3, a checkpoint, the reserve.
+            if limit and done and now + step_s + kept + save_s + clock_lib.RESERVE_S > limit:
+                break
+            done += 1
+            now += step_s + (save_s if done % every == 0 or done == p1 else 0.0)
+        return now + (save_s if done % every else 0.0), done  # the last checkpoint
+
+    now, done = field_end(budget)
+    unbudgeted, _ = field_end(None)
     ends_early = done < len(field)
-    unbudgeted = (row["startup_s"] or 0.0) + (row["compile_s"] or 0.0)
-    unbudgeted += sum(field) + (len(field) // every) * save_s
+    p3 = None
     if cfg.phase3.steps and row["phase3_step_s"] is not None and row["phase3_setup_s"] is not None:
-        # Phase 3's set: its renders scaled to the configured novel views; the rest of the setup as measured.
-        # The setup as measured, and the novel views it did not render at the steady seconds per view of
-        # every ID's renders and the clean model's.
+        # Phase 3's set: the setup as measured, and the novel views it did not render at the steady seconds
+        # per view of every ID's renders and of the clean model's.
         benched = seen.get("refit_views", views) - views
         setup = row["phase3_setup_s"] + (cfg.phase3.views - benched) * sum(seen["view_s"].values())
         first = seen["phase3_steps"][0] - row["phase3_step_s"] if seen["phase3_steps"] else 0.0
@@ -359,7 +371,7 @@ def project(row: dict[str, Any], cfg: Any, seen: dict[str, Any], views: int) -> 
         unbudgeted += setup + first + cfg.phase3.steps * m3 + save_s
         now += setup + first
         p3 = cfg.phase3.steps
-        if budget:
+        if budget:  # phase 3's schedule sized to the minutes left
             left = budget - now - save_s - clock_lib.RESERVE_S
             p3 = max(min(p3, int(phase3.SIZING_MARGIN * max(left, 0.0) / m3)), 1)
         now += p3 * m3 + save_s
@@ -371,6 +383,7 @@ def project(row: dict[str, Any], cfg: Any, seen: dict[str, Any], views: int) -> 
         "projected_min": _round(projected / 60.0, 1),
         "unbudgeted_s": _round(unbudgeted, 0),
         "field_steps_projected": done,
+        "phase3_steps_projected": p3,
         "budget_ends_field": ends_early,
     }
 
