@@ -25,8 +25,9 @@ Figures per (side, IDs):
   out (compilation; the surplus is ``compile_s``); ``field_step_s`` is phase 2's, most of the schedule.
 - ``phase3_step_s``: the median phase-3 decoder step (first left out); ``phase3_setup_s`` from the field's
   end to phase 3's first step, with ``--phase3-views`` novel views rendered (the default embedding renders
-  ``phase3.views``; the projection scales the renders' time linearly to those, and ``phase3_set_mb_projected``
-  the refit set's memory). None when the chosen embedding has no phase 3.
+  ``phase3.views``: the projection adds the views left out at the steady seconds per view of every ID's and
+  the clean model's renders; ``phase3_set_mb`` / ``phase3_set_mb_projected``: the refit set's memory as
+  rendered / with every view). None when the chosen embedding has no phase 3.
 - ``field_peak_rss_mb``: peak RSS at the field's end (process-wide, MB); ``peak_rss_mb`` after phase 3 too
   (with ``--phase3-views`` views); ``device_peak_mb`` the accelerator's peak where it reports one.
 - ``projected_s``: the whole default embedding at this size: start-up, the schedule's field steps at the
@@ -44,6 +45,11 @@ and 800² on a GPU:
 
     python scripts/bench_embed_scale.py --run LEGO_RUN --sizes 100,200,400 --num-ids 4,16,64 --json \\
         --out scale-cpu.json
+    python scripts/bench_embed_scale.py --run LEGO_RUN --sizes 800 --num-ids 4,16,64 --out scale-gpu.json
+
+Without ``--json`` a table (image, IDs, cache s, phase-2 step s, phase-3 step s, peak RSS MB, projected
+minutes) is printed row by row, then the growth lines. The exit status is 1 when a configuration failed (its
+row holds the error).
 """
 
 from __future__ import annotations
