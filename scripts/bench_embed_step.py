@@ -17,11 +17,43 @@ projected wall time of the whole embedding. The protocol of the README (lego at 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import statistics
 import tempfile
 import time
 from pathlib import Path
+
+
+@dataclasses.dataclass
+class StepClock:
+    """``embed.embed``'s ``on_step``: the wall time of every field step (seconds between two steps' callbacks,
+    from ``start`` for the first, so budget refits, redone steps and checkpoints are inside it) and its phase.
+    ``bench_embed_scale.py`` shares it."""
+
+    start: float = dataclasses.field(default_factory=time.perf_counter)
+    stamps: list[float] = dataclasses.field(default_factory=list)
+    phases: list[int] = dataclasses.field(default_factory=list)
+
+    def on_step(self, step: int, metrics: dict[str, float]) -> None:
+        self.stamps.append(time.perf_counter())
+        self.phases.append(int(metrics["phase"]))
+
+    def per_phase(self) -> dict[int, list[float]]:
+        """Each phase's step times (seconds), phases 1 and 2."""
+        seconds = [b - a for a, b in zip([self.start, *self.stamps[:-1]], self.stamps, strict=True)]
+        return {p: [s for s, q in zip(seconds, self.phases, strict=True) if q == p] for p in (1, 2)}
+
+    def medians(self) -> dict[int, float]:
+        """Each phase's median step (seconds), its first step left out (compilation); nan without two."""
+        return {
+            p: statistics.median(v[1:]) if len(v) > 1 else float("nan") for p, v in self.per_phase().items()
+        }
+
+    def first_steps_extra(self) -> float:
+        """Seconds each phase's first step took beyond its median (compilation), summed over the phases."""
+        median = self.medians()
+        return sum(v[0] - median[p] for p, v in self.per_phase().items() if v and median[p] == median[p])
 
 
 def bench(
@@ -37,15 +69,8 @@ def bench(
         f"watermark.schedule.phase1_steps={phase1}",
         f"watermark.schedule.phase2_steps={phase2}",
     ]
-    stamps: list[float] = []
-    phases: list[int] = []
-
-    def on_step(step: int, metrics: dict[str, float]) -> None:
-        stamps.append(time.perf_counter())
-        phases.append(int(metrics["phase"]))
-
     with tempfile.TemporaryDirectory() as tmp:
-        start = time.perf_counter()
+        clock = StepClock()
         result = embed.embed(
             run,
             Path(tmp) / "wm",
@@ -54,11 +79,9 @@ def bench(
             overrides=short,
             data_path=data,
             progress=False,
-            on_step=on_step,
+            on_step=clock.on_step,
         )
-    seconds = [b - a for a, b in zip([start, *stamps[:-1]], stamps, strict=True)]
-    per_phase = {p: [s for s, q in zip(seconds, phases, strict=True) if q == p] for p in (1, 2)}
-    median = {p: statistics.median(v[1:]) if len(v) > 1 else float("nan") for p, v in per_phase.items()}
+    per_phase, median = clock.per_phase(), clock.medians()
     # Start-up (loading, keys, clean references) and each phase's first step, compilation included.
     overhead = sum(v[0] - median[p] for p, v in per_phase.items() if v)
     projected = overhead + schedule[0] * median[1] + schedule[1] * median[2]

@@ -1,0 +1,81 @@
+"""The embedding benchmarks' bookkeeping: ``scripts/bench_embed_step.py``'s step clock, and
+``scripts/bench_embed_scale.py``'s figures for every (size, IDs) asked on the tiny procedural fit (the
+structure of its output, not its timings)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+from types import ModuleType
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _script(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_step_clock_medians_leave_each_phase_first_step_out() -> None:
+    clock = _script("bench_embed_step").StepClock(start=0.0)
+    for stamp, phase in [(5.0, 1), (6.0, 1), (7.0, 1), (17.0, 2), (19.0, 2), (21.0, 2), (23.0, 2)]:
+        clock.stamps.append(stamp)
+        clock.phases.append(phase)
+    assert clock.per_phase() == {1: [5.0, 1.0, 1.0], 2: [10.0, 2.0, 2.0, 2.0]}
+    assert clock.medians() == {1: 1.0, 2: 2.0} and clock.first_steps_extra() == 4.0 + 8.0
+
+
+def test_growth_exponents_are_log_log_slopes() -> None:
+    scale = _script("bench_embed_scale")
+    assert scale.slope([1e4, 4e4, 16e4], [1.0, 4.0, 16.0]) == 1.0
+    assert scale.slope([4, 16, 64], [2.0, 2.0, 2.0]) == 0.0
+    assert scale.slope([100], [1.0]) is None and scale.slope([1, 2], [None, 3.0]) is None
+
+
+def test_bench_embed_scale_reports_every_figure(tiny, tmp_path: Path, capsys) -> None:
+    scale = _script("bench_embed_scale")
+    out = tmp_path / "scale.json"
+    argv = ["--run", str(tiny.fit), "--sizes", "24,32", "--num-ids", "2", "--bits", "8"]
+    argv += [
+        "--decoder",
+        str(tiny.decoder),
+        "--steps",
+        "2",
+        "--phase3-views",
+        "2",
+        "--json",
+        "--out",
+        str(out),
+    ]
+    # Short compilations (phase 2 only, two augmentations); phase 3 and the time budget on, so that every
+    # figure is measured.
+    sets = (
+        "watermark.schedule.phase1_steps=0",
+        "watermark.augment.names=gaussian_blur,box_blur",
+        "watermark.phase3.steps=40",
+        "watermark.phase3.views=6",
+        "watermark.time_budget.minutes=5",
+        "watermark.phase3.reserve_min=1",
+    )
+    argv += [arg for s in sets for arg in ("--set", s)]
+    assert scale.main(argv) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == json.loads(out.read_text())
+    assert printed["sizes"] == [24, 32] and printed["num_ids"] == [2]
+    rows = printed["rows"]
+    assert [(r["side"], r["num_ids"], r["image"]) for r in rows] == [(24, 2, "24x24"), (32, 2, "32x32")]
+    for row in rows:
+        assert set(row) == set(scale.ROW_KEYS)
+        assert row["cache_source"] and row["cache_mb"] > 0 and row["choice"]["preset"] == "procedural"
+        assert row["schedule"] == [0, 1600] and row["phase3_schedule"] == 40 and row["phase3_views"] == 6
+        for key in ("startup_s", "cache_s", "field_step_s", "phase3_step_s", "projected_s", "peak_rss_mb"):
+            assert row[key] > 0, key
+        assert row["field_peak_rss_mb"] <= row["peak_rss_mb"]
+    assert set(printed["growth"]) == {"pixels", "ids"}
+    assert set(printed["growth"]["pixels"]["field_step_s"]) == {"2 IDs"}
+    assert set(printed["growth"]["ids"]["peak_rss_mb"]) == {"24 px", "32 px"}
