@@ -44,6 +44,7 @@ import jax
 import jax.numpy as jnp
 
 from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.core.watermark_config import AugmentConfig
 from mnerf_jax.imaging.filters import (
     box_blur,
     clip_unit,
@@ -338,6 +339,14 @@ def policy_choices(
     picked = jax.random.choice(k_pick, len(names), (k,), replace=False)
     applied = jax.random.bernoulli(k_apply, p, (k,))
     return jnp.where(applied, picked, -1).astype(jnp.int32)
+
+
+def configured_policy(key: jax.Array, images: jax.Array, cfg: AugmentConfig) -> jax.Array:
+    """:func:`random_policy` as a watermark config's ``augment`` section sets it (the images unchanged when it
+    draws no augmentation: ``per_step`` or ``prob`` 0)."""
+    if cfg.per_step <= 0 or cfg.prob <= 0:
+        return images
+    return random_policy(key, images, cfg.strength, k=cfg.per_step, p=cfg.prob, names=cfg.names or None)
 
 
 def random_policy(

@@ -308,15 +308,7 @@ def make_refit_step(
             return dwt.ll2(images[jnp.arange(images.shape[0]), rounded], cfg.reading.wavelet)
         rounded = jnp.round(images * 255.0) / 255.0
         images = jnp.where(jax.random.bernoulli(k_round, 0.5, (images.shape[0], 1, 1, 1)), rounded, images)
-        if cfg.augment.prob > 0 and cfg.augment.per_step > 0:
-            images = augment.random_policy(
-                k_aug,
-                images,
-                cfg.augment.strength,
-                k=cfg.augment.per_step,
-                p=cfg.augment.prob,
-                names=cfg.augment.names or None,
-            )
+        images = augment.configured_policy(k_aug, images, cfg.augment)
         return dwt.ll2(
             read_window.read_window(images, window, background, max_side=max_side), cfg.reading.wavelet
         )

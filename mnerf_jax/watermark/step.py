@@ -234,15 +234,8 @@ def make_image_loss(
         """The LL2 ``[B, h, w, 3]`` of ``images [B, H, W, 3]`` as the decoder sees them (augmented in phase 2:
         the same key, so the same augmentations for every call; their random parameters per image)."""
         seen = images
-        if spec.phase == 2 and cfg.augment.per_step > 0:
-            seen = augment.random_policy(
-                key,
-                seen,
-                cfg.augment.strength,
-                k=cfg.augment.per_step,
-                p=cfg.augment.prob,
-                names=cfg.augment.names or None,
-            )
+        if spec.phase == 2:
+            seen = augment.configured_policy(key, seen, cfg.augment)
         return dwt.ll2(windowed(cfg, seen), cfg.reading.wavelet)
 
     def decode(images: jax.Array, dec_params: PyTree) -> jax.Array:
