@@ -21,7 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from mnerf_jax.core import rundir
+from mnerf_jax.core import rundir, xla_cpu
 from mnerf_jax.watermark import run as wm_run
 
 NAME = "demo"
@@ -187,6 +187,7 @@ def step_watermark(ctx: DemoContext) -> None:
         resume=resume,
         progress=not ctx.quiet,
     )
+    xla_cpu.release_compiled()  # the embedding's compiled programs (memory maps) before the evaluation's
     ev = wm_eval.evaluate_watermarked_run(wm_dir, "test", progress=not ctx.quiet, keep_renders=True)
     renders = {n: r[0] for n, r in ev.pop("_renders").items()}
     clean = ev.pop("_clean")

@@ -81,6 +81,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from mnerf_jax.core import xla_cpu
     from mnerf_jax.evaluation import watermarked as wm_eval
     from mnerf_jax.watermark import embed
 
@@ -115,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         "num_ids": result.keys.num_ids,
         "bits": result.keys.bits,
         "min_hamming": result.keys.min_hamming,
-        "steps": result.steps,
+        "steps": int(result.steps),
         "seconds": round(result.seconds, 1),
         "last_bit_accuracy": last.get("bit_acc"),
         "last_psnr": last.get("psnr"),
@@ -127,12 +128,14 @@ def run(args: argparse.Namespace) -> int:
             summary[name] = int(last[name])
     print(f"mnerf embed: {json.dumps(summary)}")
     if args.eval_views >= 0:
+        del result  # the embedding's buffers and compiled steps go before the evaluation compiles its own
+        xla_cpu.release_compiled()
         evaluation = wm_eval.evaluate_watermarked_run(
             args.out, "test", args.data, max_views=args.eval_views or None, progress=not args.quiet
         )
         from mnerf_jax.evaluation.report import format_table
 
         print(format_table(evaluation))
-    if result.steps == 0:
+    if summary["steps"] == 0:
         print("mnerf embed: no steps were run", file=sys.stderr)
     return 0

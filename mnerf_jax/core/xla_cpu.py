@@ -8,6 +8,7 @@ For this code they are slower: the renderer's sampled features are materialised 
 from __future__ import annotations
 
 import functools
+import gc
 from collections.abc import Callable
 from typing import Any
 
@@ -60,3 +61,16 @@ def jit_cpu_tuned(fun: Callable | None = None, **kwargs: Any) -> Any:
         return top[0](*args, **kw)
 
     return wrapper
+
+
+def release_compiled() -> None:
+    """Drop every compiled program and what only they reference.
+
+    XLA:CPU maps each compiled kernel's code into pages of its own, so a process that compiles many programs
+    (an embedding's steps, phase 3, then an evaluation's renders) can reach the kernel's limit on memory maps
+    (``vm.max_map_count``), where the next compilation fails ("LLVM compilation error: Cannot allocate
+    memory"). A command calls this between stages that share no compiled program.
+    """
+    gc.collect()
+    jax.clear_caches()
+    gc.collect()
