@@ -396,3 +396,16 @@ def test_the_refit_set_reuses_clean_renders_of_the_training_views_it_is_given(ti
         decoder_refit.render_refit_set(
             wm, split.cameras, cfg, split.images, clean, clean_renders=references[1:]
         )
+    # The time budget's share for novel views ends the set after their first chunk (render_more is asked
+    # before each later one), with their clean renders alike.
+    many = dataclasses.replace(
+        cfg, phase3=dataclasses.replace(cfg.phase3, views=decoder_refit.VIEWS_PER_CHUNK + 2)
+    )
+    asked = []
+    cut = decoder_refit.render_refit_set(
+        wm, split.cameras, many, split.images, clean, render_more=lambda: asked.append(1) and False
+    )
+    chunk = decoder_refit.VIEWS_PER_CHUNK
+    assert len(asked) == 1
+    assert cut.renders.shape[1] == views + chunk and cut.negatives.shape[0] == 2 * views + chunk
+    np.testing.assert_array_equal(cut.renders[:, :views], rendered.renders[:, :views])  # training views first

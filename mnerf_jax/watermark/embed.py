@@ -432,8 +432,21 @@ def refit_phase(
             loop.cache, run.params, cfg, loop.keys.num_ids, run.geometry.white_bg
         )
         seen = {n: r.reshape(split.images.shape) for n, r in seen.items()}
+    render_more = lambda: True  # noqa: E731
+    if clock is not None:
+        floor = (1.0 - decoder_refit.NOVEL_VIEWS_SHARE) * clock.seconds_left(time.perf_counter())
+        render_more = lambda: clock.seconds_left(time.perf_counter()) > floor  # noqa: E731
     data = decoder_refit.render_refit_set(
-        run, split.cameras, cfg, split.images, source, progress, loop.references, seen, depth_bounds
+        run,
+        split.cameras,
+        cfg,
+        split.images,
+        source,
+        progress,
+        loop.references,
+        seen,
+        depth_bounds,
+        render_more=render_more,
     )
     keep_going, seconds_left = lambda: True, None
     if clock is not None:

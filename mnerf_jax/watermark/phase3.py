@@ -44,6 +44,9 @@ NEGATIVES_PER_BATCH_DIVISOR = 4
 VIEW_DENSITIES = get_args(ViewDensity)  # novel_cameras' spreads of the elevation
 
 
+# Under a time budget, the share of the time left at phase 3's start that rendering its novel views may take
+# (the rest is the decoder's): past it no further chunk of them is rendered.
+NOVEL_VIEWS_SHARE = 0.5
 # Views rendered (every ID) and reduced to what the decoder reads at a time: the full-size renders held.
 VIEWS_PER_CHUNK = 8
 
@@ -188,6 +191,7 @@ def render_refit_set(
     clean_renders: np.ndarray | None = None,
     training_renders: dict[int, np.ndarray] | None = None,
     depth_bounds: tuple[float, float] | None = None,
+    render_more: Callable[[], bool] = lambda: True,
 ) -> RefitSet:
     """Phase 3's training set from a loaded watermarked run (``wm_run.load_watermarked_run``): every ID's
     renders of ``cameras`` (the training views) and of ``watermark.phase3.views`` novel views
@@ -202,7 +206,8 @@ def render_refit_set(
     the geometry pass dominates). ``training_renders``: every ID's renders of ``cameras``, ``{ID: [V, H, W,
     3]}``, when the caller has them (``sample_cache.every_id_renders``), so that only the novel views are
     rendered. ``depth_bounds``: the scene's (nearest, farthest) depth, which a forward-facing scene's novel
-    views need (``Scene.depth_bounds``)."""
+    views need (``Scene.depth_bounds``). ``render_more()`` is asked before each chunk of novel views after the
+    first (the time budget's share for them): False ends the set there."""
 
     if clean_renders is not None and len(clean_renders) != len(cameras):
         raise ValueError(f"{len(clean_renders)} clean renders for {len(cameras)} training views")
@@ -231,24 +236,25 @@ def render_refit_set(
         dynamic_ncols=True,
     )
     tick = lambda _, rgb: bar.update(rgb.shape[-1] // 3)  # noqa: E731  (a view's renders: one per ID)
-    try:
-        parts = [] if training_renders is None else [{n: keep(r) for n, r in training_renders.items()}]
-        for cams in to_draw:  # a few views at a time: only their full-size renders are held at once
-            for first in range(0, len(cams), VIEWS_PER_CHUNK):
-                chunk = range(first, min(first + VIEWS_PER_CHUNK, len(cams)))
-                rendered = wm_run.render_every_id(run, cams, chunk, on_view=tick)
-                parts.append({n: keep(r) for n, r in rendered.items()})
-    finally:
-        bar.close()
-    renders = np.stack([np.concatenate([part[n] for part in parts]) for n in range(keys.num_ids)])
+    parts = [] if training_renders is None else [{n: keep(r) for n, r in training_renders.items()}]
     negatives = [keep(ground_truth)]
     if clean_model is not None and clean_renders is not None:
         negatives.append(keep(clean_renders))  # the training views' (sets[0]), given
-    if clean_model is not None:
-        for cams in sets if clean_renders is None else sets[1:]:
-            for first in range(0, len(cams), VIEWS_PER_CHUNK):
+    try:
+        for index, cams in enumerate(sets):
+            novel = index > 0
+            for first in range(0, len(cams), VIEWS_PER_CHUNK):  # only a chunk's full-size renders at once
+                if novel and first and not render_more():
+                    break
                 chunk = range(first, min(first + VIEWS_PER_CHUNK, len(cams)))
-                negatives.append(keep(np.stack(runs.render_views(clean_model, cams, chunk))))
+                if novel or training_renders is None:
+                    rendered = wm_run.render_every_id(run, cams, chunk, on_view=tick)
+                    parts.append({n: keep(r) for n, r in rendered.items()})
+                if clean_model is not None and (novel or clean_renders is None):
+                    negatives.append(keep(np.stack(runs.render_views(clean_model, cams, chunk))))
+    finally:
+        bar.close()
+    renders = np.stack([np.concatenate([part[n] for part in parts]) for n in range(keys.num_ids)])
     messages = np.asarray(keys.messages, np.uint8)
     return RefitSet(renders.astype(np.float32), messages, np.concatenate(negatives), compact)
 
