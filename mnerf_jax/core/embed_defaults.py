@@ -23,6 +23,7 @@ import math
 import os
 import tomllib
 from pathlib import Path
+from typing import Any
 
 from mnerf_jax.core import config as config_lib
 from mnerf_jax.core.watermark_config import MAX_AUTO_IDS_PER_STEP
@@ -74,10 +75,9 @@ class Choice:
         return {"preset": self.preset, "settings": list(self.settings), "reasons": list(self.reasons)}
 
     @classmethod
-    def from_dict(cls, values: dict[str, object]) -> Choice:
-        settings = values.get("settings", ())
-        reasons = values.get("reasons", ())
-        assert isinstance(settings, (list, tuple)) and isinstance(reasons, (list, tuple))
+    def from_dict(cls, values: dict[str, Any]) -> Choice:
+        """The choice :meth:`to_dict` recorded (``run.json``'s ``auto``)."""
+        settings, reasons = values.get("settings", ()), values.get("reasons", ())
         return cls(str(values["preset"]), tuple(map(str, settings)), tuple(map(str, reasons)))
 
     def describe(self) -> str:
