@@ -341,10 +341,16 @@ def policy_choices(
     return jnp.where(applied, picked, -1).astype(jnp.int32)
 
 
+def draws_any(cfg: AugmentConfig) -> bool:
+    """True when a watermark config's ``augment`` section can apply an augmentation (``per_step`` and
+    ``prob`` both above 0)."""
+    return cfg.per_step > 0 and cfg.prob > 0
+
+
 def configured_policy(key: jax.Array, images: jax.Array, cfg: AugmentConfig) -> jax.Array:
     """:func:`random_policy` as a watermark config's ``augment`` section sets it (the images unchanged when it
-    draws no augmentation: ``per_step`` or ``prob`` 0)."""
-    if cfg.per_step <= 0 or cfg.prob <= 0:
+    draws none: :func:`draws_any`)."""
+    if not draws_any(cfg):
         return images
     return random_policy(key, images, cfg.strength, k=cfg.per_step, p=cfg.prob, names=cfg.names or None)
 

@@ -73,7 +73,7 @@ def keeps_reads_only(cfg: WatermarkConfig) -> bool:
     """True when phase 3 can keep each image as what the decoder reads of it (its read window at
     ``reading.max_side``), so that its memory follows the read's size, not the images': when no
     augmentation stands between an image and its read (``augment.prob`` 0)."""
-    return not (cfg.augment.prob > 0 and cfg.augment.per_step > 0)
+    return not augment.draws_any(cfg.augment)
 
 
 def reads_of(images: np.ndarray, cfg: WatermarkConfig) -> np.ndarray:
