@@ -39,6 +39,7 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
 
     from mnerf_jax.data.rays import camera_rays
     from mnerf_jax.reader import decoder as decoder_lib
+    from mnerf_jax.reader import keys as keys_lib
     from mnerf_jax.tensorf import budgets
     from mnerf_jax.watermark import deferred, embed
     from mnerf_jax.watermark import model as watermark
@@ -80,6 +81,7 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
         "message": keys[1:2],
         "id": jnp.asarray([1], jnp.int32),
         "keys": keys,
+        "null": jnp.asarray(keys_lib.null_message(np.asarray(keys)), jnp.float32),
     }
     geometry = source.geometry
     policy = budgets.BudgetPolicy()
@@ -125,7 +127,14 @@ def child(run: str, size: int, patch: int, steps: int, mode: str) -> dict:
         fn = wm_step.render_patch_fn(s, geometry, batch["id"])
         target = batch["target"].reshape(height, size, 3)
         image_loss = wm_step.make_image_loss(
-            s, jax.random.key(4), batch["message"], target, dec_vars, keys=batch["keys"], ids=batch["id"]
+            s,
+            jax.random.key(4),
+            batch["message"],
+            target,
+            dec_vars,
+            keys=batch["keys"],
+            ids=batch["id"],
+            null=batch["null"],
         )
 
         @jax.jit

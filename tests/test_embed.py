@@ -326,9 +326,9 @@ def test_deferred_gradient_equals_direct_gradient_with_the_real_renderer_and_los
     assert float(jnp.abs(ref_params["wm"]["grid"]["planes"][0]).max()) > 0
 
 
-def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_message() -> None:
-    # losses.lambda_clean adds λ·BCE(decoder(ground truth), ½) in phase 2: a constant in the image (the
-    # field's gradient is unchanged) that trains the decoder to read nothing from unwatermarked images.
+def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_the_null_word() -> None:
+    # losses.lambda_clean adds λ·BCE(decoder(ground truth), null word) in phase 2: a constant in the image
+    # (the field's gradient is unchanged) that trains the decoder to read no key from unwatermarked images.
     from mnerf_jax.imaging import losses
     from mnerf_jax.reader import decoder
 
@@ -340,11 +340,12 @@ def test_clean_negative_term_pulls_the_decoder_on_ground_truth_towards_no_messag
     def loss_fn(lambda_clean: float, phase: int = 2):
         cfg = wm_config(augment_per_step=0, lambda_clean=lambda_clean, lambda_key=0.0)
         spec = _image_loss_spec(cfg, phase, 24)
-        return S.make_image_loss(spec, jax.random.PRNGKey(3), message, target, dec)
+        return S.make_image_loss(spec, jax.random.PRNGKey(3), message, target, dec, null=null)
 
+    null = jnp.array([0, 1, 0, 0, 1, 1, 0, 1], jnp.float32)
     with_clean, without = loss_fn(0.5), loss_fn(0.0)
     clean_logits = decoder.apply_ll2(dec, dwt.ll2(target[None]))[0]
-    expected = 0.5 * losses.bce_with_logits(clean_logits, 0.5)
+    expected = 0.5 * losses.bce_with_logits(clean_logits, null)
     delta = with_clean(image, dec["params"])[0] - without(image, dec["params"])[0]
     np.testing.assert_allclose(delta, expected, rtol=1e-5)
     g_with = jax.grad(lambda x: with_clean(x, dec["params"])[0])(image)
@@ -890,7 +891,7 @@ def test_phase_two_draws_only_the_configured_augmentations(monkeypatch: pytest.M
     for names, expect in (((), None), (("jpeg", "hue"), ("jpeg", "hue"))):
         wm = wm_config(augment_names=names, lambda_key=0.0)
         spec = _image_loss_spec(wm, 2, 16)
-        loss = S.make_image_loss(spec, jax.random.PRNGKey(1), jnp.zeros(8), image, dec)
+        loss = S.make_image_loss(spec, jax.random.PRNGKey(1), jnp.zeros(8), image, dec, null=jnp.ones(8))
         seen.clear()
         jax.eval_shape(loss, image, dec["params"])
         assert seen == [expect, expect]  # the renders, and the ground truth of the clean term (lambda_clean)
@@ -926,7 +927,8 @@ def test_several_ids_per_step_give_the_mean_of_their_one_id_gradients() -> None:
 
     def objective(id_arr, message):
         fn = S.render_patch_fn(spec, geometry, id_arr)
-        loss_fn = S.make_image_loss(spec, jax.random.PRNGKey(5), message, target_image, dec)
+        null = jnp.zeros(message.shape[-1])
+        loss_fn = S.make_image_loss(spec, jax.random.PRNGKey(5), message, target_image, dec, null=null)
         return fn, loss_fn
 
     fn, loss_fn = objective(ids, messages)
@@ -1047,7 +1049,10 @@ def test_fidelity_term_is_the_mse_beyond_the_budget_in_both_phases() -> None:
     def loss_fn(psnr: float, phase: int, ref: jax.Array | None):
         cfg = wm_config(augment_per_step=0, fidelity_psnr=psnr, lambda_fidelity=4.0, lambda_key=0.0)
         spec = _image_loss_spec(cfg, phase, 24)
-        return jax.jit(S.make_image_loss(spec, jax.random.PRNGKey(4), messages, target, dec, None, ref))
+        null = jnp.zeros(8)
+        return jax.jit(
+            S.make_image_loss(spec, jax.random.PRNGKey(4), messages, target, dec, None, ref, null=null)
+        )
 
     mse = jnp.mean(jnp.square(renders - reference[..., None, :]), axis=(0, 1, 3))  # per ID
     assert float(jnp.min(mse)) > 10 ** (-3.5)  # both renders outside a 35 dB budget (~30.5 dB)
@@ -1125,7 +1130,17 @@ def test_the_steps_budget_given_as_data_equals_the_configs_constant_one() -> Non
         cfg = wm_config(augment_per_step=0, fidelity_psnr=psnr, lambda_key=0.0)
         spec = _image_loss_spec(cfg, 2, 24)
         fn = S.make_image_loss(
-            spec, jax.random.PRNGKey(4), message, target, dec, None, reference, None, None, budget
+            spec,
+            jax.random.PRNGKey(4),
+            message,
+            target,
+            dec,
+            None,
+            reference,
+            None,
+            None,
+            budget,
+            null=jnp.zeros(8),
         )
         return fn(image, dec["params"])[0]
 
@@ -1172,7 +1187,9 @@ def test_clean_term_reads_the_clean_models_render_when_asked() -> None:
     def loss(negative: str, target_image: jax.Array, ref: jax.Array | None, phase: int = 2) -> float:
         cfg = wm_config(augment_per_step=0, lambda_clean=0.5, clean_negative=negative, lambda_key=0.0)
         spec = _image_loss_spec(cfg, phase, 24)
-        fn = S.make_image_loss(spec, jax.random.PRNGKey(4), message, target_image, dec, None, ref)
+        fn = S.make_image_loss(
+            spec, jax.random.PRNGKey(4), message, target_image, dec, None, ref, null=jnp.zeros(8)
+        )
         return float(fn(image, dec["params"])[0])
 
     assert O.uses_clean_renders(wm_config(clean_negative="clean_model"))

@@ -193,3 +193,35 @@ def test_pair_probability_matches_enumeration() -> None:
     for d in (1, 2, 3, 4):
         close = sum(1 for a, b in itertools.product(range(2**bits), repeat=2) if bin(a ^ b).count("1") < d)
         assert math.isclose(K._pair_close_probability(bits, d), close / 4**bits)
+
+
+def _brute_force_null(messages: np.ndarray) -> np.ndarray:
+    """Every word of L bits scored in turn: the largest smallest distance, then the largest total, first."""
+    bits = messages.shape[1]
+    best, best_score = None, None
+    for word in itertools.product((0, 1), repeat=bits):
+        distance = (np.asarray(word)[None] != messages).sum(axis=1)
+        score = (int(distance.min()), int(distance.sum()))
+        if best_score is None or score > best_score:
+            best, best_score = np.asarray(word, np.uint8), score
+    return best
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(1, 8), st.integers(2, 9), st.integers(0, 2**16))
+def test_null_word_is_the_word_farthest_from_every_key(num_ids: int, bits: int, seed: int) -> None:
+    messages = np.random.default_rng(seed).integers(0, 2, (num_ids, bits)).astype(np.uint8)
+    null = K.null_message(messages)
+    expected = _brute_force_null(messages)
+    assert null.dtype == np.uint8 and null.shape == (bits,)
+    got = (null[None] != messages).sum(axis=1)
+    want = (expected[None] != messages).sum(axis=1)
+    assert (got.min(), got.sum()) == (want.min(), want.sum())
+
+
+def test_null_word_of_long_keys_is_far_from_them_and_deterministic() -> None:
+    keys = K.generate_keys(16, 48, seed=3).messages
+    null = K.null_message(keys)
+    np.testing.assert_array_equal(null, K.null_message(keys))
+    # A random word sits about L/2 from each key; the chosen one is far from all of them at once.
+    assert (null[None] != keys).sum(axis=1).min() >= 18

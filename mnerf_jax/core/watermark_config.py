@@ -136,8 +136,8 @@ class LossesConfig:
     # + lambda_key · cross-entropy of naming each render's key among all N keys: its gradient sits on the bits
     # that tell two keys apart. Not in the paper (0 there).
     lambda_key: float = 0.2
-    # Phase 2: + lambda_clean · BCE(decoder(unwatermarked view), ½), so the decoder does not learn to read
-    # the scene itself. Not in the paper (0 there).
+    # Phase 2: + lambda_clean · BCE(decoder(unwatermarked view), null word far from every key), so the decoder
+    # reads an image without a watermark (the scene itself) as no key. Not in the paper (0 there).
     lambda_clean: float = 0.3
     # What the clean term reads as unwatermarked: the training view, or the clean model's render of it.
     clean_negative: CleanNegative = "ground_truth"
@@ -276,7 +276,7 @@ class Phase3Config:
     elevation_margin: float = 0.0  # degrees the novel views reach past the training cameras' elevations
     lr: float = 1e-3
     batch: int = 32  # renders per step (and a quarter as many negatives)
-    lambda_clean: float = 0.3  # weight of BCE(decoder(unwatermarked image), ½)
+    lambda_clean: float = 0.3  # weight of BCE(decoder(unwatermarked image), the null word)
     reserve_min: float = 0.0  # minutes of the time budget kept for phase 3
 
     def __post_init__(self) -> None:

@@ -192,6 +192,41 @@ def min_pairwise_hamming(messages: np.ndarray) -> int:
     return int(dist[~np.eye(m.shape[0], dtype=bool)].min())
 
 
+# Up to this many bits the null word is searched among every word; past it among NULL_CANDIDATES random ones.
+NULL_EXHAUSTIVE_BITS = 20
+NULL_CANDIDATES = 1 << 16
+
+
+def null_message(messages: np.ndarray) -> np.ndarray:
+    """The ``[L]`` word (uint8 0/1) farthest from every key of ``messages [N, L]``: the largest smallest
+    Hamming distance to the keys, then the largest mean distance, then the first in order.
+
+    The embedding teaches the decoder to read unwatermarked images as this word (its clean terms' target), so
+    that an image without a watermark reads far from every key rather than near whichever the decoder
+    drifted to. Deterministic in the keys: every word for ``L`` ≤ :data:`NULL_EXHAUSTIVE_BITS`, else
+    :data:`NULL_CANDIDATES` words drawn with a fixed seed (a verifier never needs it).
+    """
+    keys = np.asarray(messages, np.uint8)
+    bits = keys.shape[1]
+    weights = np.left_shift(np.uint64(1), np.arange(bits, dtype=np.uint64))
+    key_words = (keys.astype(np.uint64) * weights).sum(axis=1)  # [N]: bit b of word = keys[:, b]
+    if bits <= NULL_EXHAUSTIVE_BITS:
+        candidates = np.arange(1 << bits, dtype=np.uint64)
+    else:
+        drawn = np.random.default_rng(0).integers(0, 2, (NULL_CANDIDATES, bits), dtype=np.uint8)
+        candidates = (drawn.astype(np.uint64) * weights).sum(axis=1)
+    best, best_score = 0, -1
+    for start in range(0, len(candidates), 1 << 16):  # [C, N] distances a block at a time
+        block = candidates[start : start + (1 << 16)]
+        distance = np.bitwise_count(block[:, None] ^ key_words[None, :]).astype(np.int64)
+        score = distance.min(axis=1) * (keys.shape[0] * bits + 1) + distance.sum(axis=1)
+        top = int(np.argmax(score))  # the first of the block's best
+        if int(score[top]) > best_score:
+            best, best_score = start + top, int(score[top])
+    word = int(candidates[best])
+    return np.array([(word >> b) & 1 for b in range(bits)], np.uint8)
+
+
 def generate_keys(
     num_ids: int,
     bits: int,

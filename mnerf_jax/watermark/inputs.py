@@ -17,6 +17,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from mnerf_jax.data import camera_rays
+from mnerf_jax.reader import keys as keys_lib
 from mnerf_jax.reader.train import cover_images
 from mnerf_jax.tensorf import run as runs
 from mnerf_jax.watermark.run import EmbedError
@@ -52,10 +53,16 @@ def anchor_images(seed: int, step: int, count: int, height: int, width: int) -> 
 
 
 def step_batch(
-    split: Any, view: int, messages: np.ndarray, ids: Sequence[int], references: np.ndarray | None = None
+    split: Any,
+    view: int,
+    messages: np.ndarray,
+    ids: Sequence[int],
+    references: np.ndarray | None = None,
+    null: np.ndarray | None = None,
 ) -> dict[str, jax.Array]:
     """One step's inputs: the view's rays and pixels, the ``K`` IDs with their messages ``[K, L]``, every
-    ID's message ``keys [N, L]``, and the clean model's render of the view when ``references`` (the quality
+    ID's message ``keys [N, L]``, the word clean images are read as ``null [L]`` (``keys_lib.null_message``
+    of the keys, when not given), and the clean model's render of the view when ``references`` (the quality
     budget) are given."""
     o, d = camera_rays(split.cameras, view)
     batch = {
@@ -65,6 +72,7 @@ def step_batch(
         "message": jnp.asarray(messages[np.asarray(ids)], jnp.float32),
         "id": jnp.asarray(ids, jnp.int32),
         "keys": jnp.asarray(messages, jnp.float32),
+        "null": jnp.asarray(keys_lib.null_message(messages) if null is None else null, jnp.float32),
     }
     if references is not None:
         batch["reference"] = jnp.asarray(references[view].reshape(-1, 3), jnp.float32)

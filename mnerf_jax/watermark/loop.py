@@ -127,6 +127,7 @@ class EmbedLoop:
         # What every step passes unchanged, made once rather than per step.
         cfg = self.config.watermark
         self._messages = self.keys.messages.astype(np.float32)
+        self._null = keys_lib.null_message(self.keys.messages)
         self._index, self._owner = jnp.asarray(self.layout.index), jnp.asarray(self.layout.owner)
         self._step_cfg = step_config(cfg)
         self._total_steps = total_steps(cfg)
@@ -170,7 +171,7 @@ class EmbedLoop:
         None when samples overflowed the buffers (grown now: redo it)."""
         cfg = self.config.watermark
         ids, view = step_choice(cfg.seed, step, self.keys.num_ids, len(self.split.images), self._ids_per_step)
-        batch = step_batch(self.split, view, self._messages, ids, self.references)
+        batch = step_batch(self.split, view, self._messages, ids, self.references, self._null)
         if self.cache is not None:
             batch.update({k: jnp.asarray(v) for k, v in self.cache.view(view).items()})
         if uses_fidelity(cfg):  # the budget as data: its ramp (fidelity_budget_db) compiles once

@@ -6,7 +6,8 @@ given, and a decoder step on it costs a fraction of a field step (no render, no 
 field). Phase 3 renders that set once (``watermark.phase3.views`` more views around the training cameras: on
 their sphere for object-centred scenes, on the spiral render path for forward-facing ones), then trains the
 decoder's weights alone on it: the message BCE and the key term of phase 2 on every render, and
-``phase3_lambda_clean`` · BCE against ½ on unwatermarked images (the training views' photographs, and the
+``phase3_lambda_clean`` · BCE against the null word (``keys.null_message``, far from every key) on
+unwatermarked images (the training views' photographs, and the
 clean model's renders of every view used); half of each batch is rounded to 8 bits as a saved PNG is, and the
 run's phase-2 augmentations apply when it has them. The field, and so the PSNR, does not change (results:
 docs/experiments/).
@@ -28,12 +29,13 @@ import optax
 from tqdm.auto import tqdm
 
 from mnerf_jax.core import xla_cpu
-from mnerf_jax.core.watermark_config import ViewDensity, WatermarkConfig
+from mnerf_jax.core.watermark_config import AugmentConfig, ViewDensity, WatermarkConfig
 from mnerf_jax.data import trajectory
 from mnerf_jax.data.types import Cameras
 from mnerf_jax.imaging import augment, losses
 from mnerf_jax.reader import decoder as decoder_lib
 from mnerf_jax.reader import dwt, read_window
+from mnerf_jax.reader import keys as keys_lib
 from mnerf_jax.tensorf import run as runs
 from mnerf_jax.watermark import run as wm_run
 
@@ -43,6 +45,9 @@ PyTree = Any
 NEGATIVES_PER_BATCH_DIVISOR = 4
 VIEW_DENSITIES = get_args(ViewDensity)  # novel_cameras' spreads of the elevation
 
+
+# The strength of the attacks phase 3's negatives go through each step (negative_attacks).
+NEGATIVE_STRENGTH = "medium"
 
 # Under a time budget, the share of the time left at phase 3's start that rendering its novel views may take
 # (the rest is the decoder's): past it no further chunk of them is rendered.
@@ -59,14 +64,25 @@ class RefitSet:
       renders: ``[N, V, H, W, 3]`` float32 in [0, 1], view ``v`` rendered with ID ``n``; ``compact``:
         ``[N, V, 2, S, S', 3]``, what the decoder reads of each (:func:`reads_of`).
       messages: ``[N, L]`` 0/1, each ID's key.
-      negatives: ``[G, H, W, 3]`` unwatermarked images (decoded against ½); ``compact``: ``[G, 2, S, S', 3]``.
+      negatives: ``[G, H, W, 3]`` uint8, unwatermarked images as a verifier receives them (8-bit), kept whole
+        in either layout: each step attacks them (:func:`negative_attacks`) before reading them.
+      null: ``[L]`` 0/1, the word the negatives are decoded against (``keys.null_message`` of the keys).
       compact: the images are kept as their reads (:func:`keeps_reads_only`), not as images.
     """
 
     renders: Any
     messages: Any
     negatives: Any
+    null: Any = None
     compact: bool = flax.struct.field(pytree_node=False, default=False)
+
+
+def negative_attacks(cfg: WatermarkConfig) -> AugmentConfig:
+    """The attacks phase 3's negatives go through, whatever the run trains its renders with: two a step,
+    each with probability 0.75, at :data:`NEGATIVE_STRENGTH`, from the run's ``augment.names`` (all 14 when
+    empty). A verifier meets clean renders a platform re-encoded or colour-graded; a decoder that saw them
+    only untouched reads such images as keys (docs/experiments/, false claims)."""
+    return AugmentConfig(strength=NEGATIVE_STRENGTH, names=cfg.augment.names, per_step=2, prob=0.75)
 
 
 def keeps_reads_only(cfg: WatermarkConfig) -> bool:
@@ -227,6 +243,7 @@ def render_refit_set(
     to_draw = sets if training_renders is None else sets[1:]
     compact = keeps_reads_only(cfg)
     keep = (lambda x: reads_of(np.asarray(x), cfg)) if compact else (lambda x: np.asarray(x, np.float32))  # noqa: E731
+    keep_clean = lambda x: np.round(np.clip(np.asarray(x, np.float32), 0, 1) * 255).astype(np.uint8)  # noqa: E731
     views = sum(len(c) for c in to_draw)
     bar = tqdm(
         total=views * keys.num_ids,
@@ -237,9 +254,9 @@ def render_refit_set(
     )
     tick = lambda _, rgb: bar.update(rgb.shape[-1] // 3)  # noqa: E731  (a view's renders: one per ID)
     parts = [] if training_renders is None else [{n: keep(r) for n, r in training_renders.items()}]
-    negatives = [keep(ground_truth)]
+    negatives = [keep_clean(ground_truth)]
     if clean_model is not None and clean_renders is not None:
-        negatives.append(keep(clean_renders))  # the training views' (sets[0]), given
+        negatives.append(keep_clean(clean_renders))  # the training views' (sets[0]), given
     try:
         for index, cams in enumerate(sets):
             novel = index > 0
@@ -251,12 +268,13 @@ def render_refit_set(
                     rendered = wm_run.render_every_id(run, cams, chunk, on_view=tick)
                     parts.append({n: keep(r) for n, r in rendered.items()})
                 if clean_model is not None and (novel or clean_renders is None):
-                    negatives.append(keep(np.stack(runs.render_views(clean_model, cams, chunk))))
+                    negatives.append(keep_clean(np.stack(runs.render_views(clean_model, cams, chunk))))
     finally:
         bar.close()
     renders = np.stack([np.concatenate([part[n] for part in parts]) for n in range(keys.num_ids)])
     messages = np.asarray(keys.messages, np.uint8)
-    return RefitSet(renders.astype(np.float32), messages, np.concatenate(negatives), compact)
+    null = keys_lib.null_message(messages)
+    return RefitSet(renders.astype(np.float32), messages, np.concatenate(negatives), null, compact)
 
 
 def refit_rate(cfg: WatermarkConfig, step: Any, total: Any) -> jax.Array:
@@ -298,14 +316,16 @@ def make_refit_step(
     batches of ``data`` (a :class:`RefitSet` of arrays: arguments, not constants baked into the compiled
     step), at :func:`refit_rate` of ``step`` in a ``total``-step schedule (int32 scalars, data too).
 
-    A batch: ``phase3_batch`` renders (ID and view uniform) and a quarter as many negatives; each image
-    rounded to 8 bits with probability ½; the run's augmentations when phase 2 had them
-    (``augment_prob > 0``); then the read window, LL2 and the decoder (eval-mode BatchNorm, as phase 2).
+    A batch: ``phase3_batch`` renders (ID and view uniform), each rounded to 8 bits with probability ½ and
+    through the run's augmentations when phase 2 had them (``augment_prob > 0``), and a quarter as many
+    negatives (8-bit) through :func:`negative_attacks`; then the read window, LL2 and the decoder (eval-mode
+    BatchNorm, as phase 2).
     """
     batch = int(cfg.phase3.batch)
     n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.phase3.lambda_clean else 0
     window, background, _, max_side = read_window.of_config(cfg.reading)  # phase 3 reads as phase 2
     tx = refit_optimizer(cfg)
+    attacks = negative_attacks(cfg)
 
     def prepare(key: jax.Array, images: jax.Array, compact: bool) -> jax.Array:
         k_round, k_aug = jax.random.split(key)
@@ -333,8 +353,14 @@ def make_refit_step(
             k_pos, data.renders[ids, jax.random.randint(k_view, (batch,), 0, n_views)], data.compact
         )
         if n_neg:  # an empty batch would reach the augmentations' convolutions (a zero group count)
+            if data.null is None:
+                raise ValueError("phase 3's negatives need the word they are read as (RefitSet.null)")
+            null = data.null.astype(jnp.float32)
             negatives = data.negatives[jax.random.randint(k_neg, (n_neg,), 0, data.negatives.shape[0])]
-            clean = prepare(k_clean, negatives, data.compact)
+            attacked = augment.configured_policy(k_clean, negatives.astype(jnp.float32) / 255.0, attacks)
+            clean = dwt.ll2(
+                read_window.read_window(attacked, window, background, max_side=max_side), cfg.reading.wavelet
+            )
         messages = data.messages.astype(jnp.float32)
 
         def loss_fn(p: PyTree) -> jax.Array:
@@ -348,7 +374,7 @@ def make_refit_step(
                 )
             if n_neg:
                 z_clean = logits_of(p, clean)
-                clean_bce = losses.bce_with_logits(z_clean, 0.5, cfg.losses.bce_temperature)
+                clean_bce = losses.bce_with_logits(z_clean, null, cfg.losses.bce_temperature)
                 loss = loss + cfg.phase3.lambda_clean * clean_bce
             return loss
 

@@ -205,6 +205,7 @@ def make_image_loss(
     fidelity_budget: jax.Array | None = None,
     anchors: jax.Array | None = None,
     anchor_decoder: PyTree | None = None,
+    null: jax.Array | None = None,
 ) -> Callable[[jax.Array, PyTree], tuple[jax.Array, dict[str, jax.Array]]]:
     """The image-level loss ``(image [H, W, 3K], decoder params) -> (loss, {"bce", "key", "perceptual",
     "anchor"})``.
@@ -214,7 +215,8 @@ def make_image_loss(
     Phase 2: ``augment_per_step`` random augmentations (``key``) → LL2 → decoder → BCE(T) against
     the render's message and (``lambda_key``) the key cross-entropy against every ID's message
     ``keys [N, L]`` given the renders' ``ids [K]`` (:func:`message_loss`), plus (``lambda_clean``) BCE(T) of
-    the equally augmented unwatermarked view against ½: ``target_image``, or the clean model's render
+    the equally augmented unwatermarked view against the null word ``null [L]`` (``keys.null_message``, far
+    from every key): ``target_image``, or the clean model's render
     ``reference [H, W, 3]`` (``clean_negative = "clean_model"``), plus (``lambda_anchor``, where
     ``anchors [A, H, W, 3]`` and the starting decoder's variables ``anchor_decoder`` are given) the mean
     squared difference between the decoder's logits of the equally augmented clean images ``anchors`` and the
@@ -229,6 +231,8 @@ def make_image_loss(
     if uses_clean_renders(cfg) and reference is None:
         raise ValueError("the quality budget and clean_negative='clean_model' need the clean model's render")
     negative = reference if cfg.losses.clean_negative == "clean_model" else target_image
+    if spec.phase == 2 and cfg.losses.lambda_clean and null is None:
+        raise ValueError("the clean term (watermark.losses.lambda_clean) needs the null word (null)")
 
     def seen_ll2(images: jax.Array) -> jax.Array:
         """The LL2 ``[B, h, w, 3]`` of ``images [B, H, W, 3]`` as the decoder sees them (augmented in phase 2:
@@ -249,7 +253,7 @@ def make_image_loss(
         if spec.phase == 2 and cfg.losses.lambda_clean:
             clean_logits = decode(negative[None], dec_params)
             loss = loss + cfg.losses.lambda_clean * losses.bce_with_logits(
-                clean_logits, 0.5, cfg.losses.bce_temperature
+                clean_logits, null, cfg.losses.bce_temperature
             )
         anchor = jnp.zeros((), jnp.float32)
         if spec.phase == 2 and uses_anchors(cfg) and anchors is not None and anchor_decoder is not None:
@@ -322,6 +326,7 @@ def embed_step(
         batch.get("fidelity_mse"),
         batch.get("anchors"),
         anchor_decoder,
+        batch.get("null"),
     )
     ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
     cache = {k: v for k, v in batch.items() if k.startswith("cache_")} or None
