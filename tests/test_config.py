@@ -56,6 +56,18 @@ def test_a_removed_switch_at_another_value_is_refused_with_one_line() -> None:
         assert "\n" not in str(err.value)
 
 
+def test_a_runs_config_with_the_removed_anchor_term_loads_when_it_was_off() -> None:
+    # losses.lambda_anchor / anchor_images were deleted (the null word does better): a run written with the
+    # term off loads as today's default; one that ran it is refused in one line.
+    off = config.from_dict(
+        {"watermark": {"losses": {"lambda_anchor": 0.0, "anchor_images": 4, "lambda_key": 0.1}}}
+    )
+    assert off.watermark.losses == dataclasses.replace(config.Config().watermark.losses, lambda_key=0.1)
+    with pytest.raises(ConfigError, match=r"watermark.losses.lambda_anchor = 1.0 was removed") as err:
+        config.from_dict({"watermark": {"losses": {"lambda_anchor": 1.0}}})
+    assert "\n" not in str(err.value)
+
+
 def test_choices_and_ranges_are_checked_when_the_config_is_built() -> None:
     bad = [
         "watermark.variant=bogus",

@@ -20,6 +20,7 @@ from mnerf_jax.core.config import ModelConfig, WatermarkConfig
 from mnerf_jax.core.config import watermark_from_flat as wm_config
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.reader import decoder_io, dwt
+from mnerf_jax.reader import keys as keys_lib
 from mnerf_jax.tensorf import raymarch
 from mnerf_jax.watermark import deferred as D
 from mnerf_jax.watermark import embed as E
@@ -1223,46 +1224,8 @@ def test_clean_references_are_the_clean_models_renders_of_the_training_views(tin
     messages = np.eye(2, 8, dtype=np.float32)
     batch = EI.step_batch(split, 3, messages, (1,), references)
     np.testing.assert_array_equal(batch["reference"], references[3].reshape(-1, 3).astype(np.float32))
+    # The clean term's target: the word farthest from every key, the same however it is passed.
+    np.testing.assert_array_equal(batch["null"], keys_lib.null_message(messages).astype(np.float32))
+    given = EI.step_batch(split, 3, messages, (1,), references, keys_lib.null_message(messages))
+    np.testing.assert_array_equal(given["null"], batch["null"])
     assert "reference" not in EI.step_batch(split, 3, messages, (1,))
-
-
-def test_anchor_images_are_a_function_of_seed_and_step() -> None:
-    # Phase 2's anchor term reads clean images drawn from (seed, step): a resumed run reads the same ones.
-    first = EI.anchor_images(0, 7, 3, 20, 28)
-    assert first.shape == (3, 20, 28, 3) and first.dtype == np.float32
-    assert 0.0 <= first.min() and first.max() <= 1.0
-    np.testing.assert_array_equal(first, EI.anchor_images(0, 7, 3, 20, 28))
-    assert not np.array_equal(first, EI.anchor_images(0, 8, 3, 20, 28))
-    assert not np.array_equal(first, EI.anchor_images(1, 7, 3, 20, 28))
-
-
-def test_anchor_term_holds_the_decoders_clean_reads_to_the_starting_decoders() -> None:
-    # lambda_anchor · mean (logits − the starting decoder's logits)² on the anchor images, in phase 2 only:
-    # zero while the decoder is the starting one, positive once it moved, with a gradient back towards it.
-    from mnerf_jax.reader import decoder
-
-    dec = decoder.init_decoder(jax.random.PRNGKey(0), 8)
-    moved = jax.tree.map(lambda p: p * 1.05 + 0.01, dec["params"])
-    anchors = jnp.asarray(EI.anchor_images(0, 1, 2, 24, 24))
-    target, image = (jax.random.uniform(jax.random.PRNGKey(i), (24, 24, 3)) for i in (2, 3))
-    message = jnp.array([[1, 0, 1, 1, 0, 0, 1, 0]], jnp.float32)
-
-    def term(params: dict, phase: int = 2, lambda_anchor: float = 0.5) -> tuple[float, float]:
-        cfg = wm_config(augment_per_step=0, lambda_key=0.0, lambda_clean=0.0, lambda_anchor=lambda_anchor)
-        spec = _image_loss_spec(cfg, phase, 24)
-        fn = S.make_image_loss(
-            spec, jax.random.PRNGKey(4), message, target, dec, None, None, None, None, None, anchors, dec
-        )
-        loss, aux = fn(image, params)
-        return float(loss), float(aux["anchor"])
-
-    assert O.uses_anchors(wm_config(lambda_anchor=0.5)) and not O.uses_anchors(WatermarkConfig())
-    assert not O.uses_anchors(wm_config(lambda_anchor=0.5, anchor_images=0))
-    assert term(dec["params"])[1] == 0.0
-    loss_on, anchor = term(moved)
-    loss_off, _ = term(moved, lambda_anchor=0.0)
-    assert anchor > 0.0
-    np.testing.assert_allclose(loss_on - loss_off, 0.5 * anchor, rtol=1e-4)
-    assert term(moved, phase=1)[1] == 0.0
-    with pytest.raises(MnerfError, match="lambda_anchor"):
-        wm_config(lambda_anchor=-1.0)

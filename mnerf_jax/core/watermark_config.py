@@ -141,12 +141,6 @@ class LossesConfig:
     lambda_clean: float = 0.3
     # What the clean term reads as unwatermarked: the training view, or the clean model's render of it.
     clean_negative: CleanNegative = "ground_truth"
-    # Phase 2: + lambda_anchor · mean squared difference between the decoder's logits and the starting
-    # decoder's (which never saw the keys) on anchor_images clean images a step (augmented like the renders:
-    # crops of scikit-image's training photographs, procedural textures), so that its reads of images without
-    # a watermark stay those of a decoder fixed before the keys were drawn. 0: off (the paper).
-    lambda_anchor: float = 0.0
-    anchor_images: int = 4
 
     def __post_init__(self) -> None:
         _check_literals(self, "watermark.losses")
@@ -156,11 +150,6 @@ class LossesConfig:
         _require(
             self.id_loss_power >= 0,
             f"watermark.losses.id_loss_power must be ≥ 0 (0: every ID alike), got {self.id_loss_power}",
-        )
-        _require(
-            self.lambda_anchor >= 0 and self.anchor_images >= 0,
-            "watermark.losses.lambda_anchor and anchor_images must be ≥ 0 (0: off), "
-            f"got {self.lambda_anchor} and {self.anchor_images}",
         )
 
 
@@ -386,6 +375,25 @@ _RENAMED = {
 }
 # Switches removed with their code path, and the one value this version still runs.
 _REMOVED = {"emb_activation": "relu", "budget_sizes_field": False}
+# The same for keys of a section; None: any value (a setting that only mattered with the removed switch on).
+_REMOVED_IN_SECTION = {("losses", "lambda_anchor"): 0.0, ("losses", "anchor_images"): None}
+
+
+def _drop_removed(section: str, values: dict[str, Any]) -> dict[str, Any]:
+    """A section's table without its removed keys (:data:`_REMOVED_IN_SECTION`); a ConfigError where one is
+    set to a value this version does not run."""
+    out = {}
+    for key, value in values.items():
+        if (section, key) not in _REMOVED_IN_SECTION:
+            out[key] = value
+            continue
+        runs = _REMOVED_IN_SECTION[(section, key)]
+        if runs is not None and value != runs:
+            raise ConfigError(
+                f"watermark.{section}.{key} = {value!r} was removed in this version (it runs {runs!r} only); "
+                "the run was written by an earlier mnerf-jax"
+            )
+    return out
 
 
 def _legacy_keys() -> dict[str, tuple[str, str]]:
@@ -401,8 +409,8 @@ def _legacy_keys() -> dict[str, tuple[str, str]]:
 def translate_flat(values: dict[str, Any]) -> dict[str, Any]:
     """A ``watermark`` table of a config.json written before the sections, in today's nested form.
 
-    Keys already nested pass through; a removed switch at the value this version runs is dropped, at any
-    other value refused with one line."""
+    Keys already nested pass through; a removed switch (flat or in a section) at the value this version runs
+    is dropped, at any other value refused with one line."""
     legacy = _legacy_keys()
     out: dict[str, Any] = {}
     for key, value in values.items():
@@ -416,6 +424,8 @@ def translate_flat(values: dict[str, Any]) -> dict[str, Any]:
         if key in legacy and not isinstance(value, dict):
             section_name, name = legacy[key]
             out.setdefault(section_name, {})[name] = value
+        elif isinstance(value, dict):
+            out[key] = _drop_removed(key, value)
         else:
             out[key] = value
     return out

@@ -8,9 +8,8 @@ agreement pattern ``ε_i = +1`` where the decoded bit ``ℓ_i > 0`` equals the k
 That holds for a decoder fixed before the keys were drawn (the shipped one, a ``--decoder`` file). Phase 2 of
 the embedding trains the decoder with the keys, and such a decoder can be drawn towards them on clean images
 too (its reads of clean images collapse onto a few patterns near the keys): then the p-values are nominal,
-and the false claims measured on clean images (``scripts/false_claims.py``) are the figure to trust. Phase 2's
-anchor term (``watermark.losses.lambda_anchor``) holds the decoder's clean reads to those of the decoder it
-started from.
+and the false claims measured on clean images (``scripts/false_claims.py``) are the figure to trust. The
+embedding's clean terms teach it to read clean images as a word far from every key (``keys.null_message``).
 
 - **binomial** (the count of agreeing bits ``k``): ``p = P[Bin(L, ½) ≥ k]``.
 - **sign_flip** (the agreement weighted by confidence, ``S = Σ_i w_i ε_i`` with ``w_i ∝ |ℓ_i|``):

@@ -69,7 +69,7 @@ from mnerf_jax.watermark import sample_cache
 from mnerf_jax.watermark.deferred import patch_layout, tiling_patch_size, whole_view_layout
 from mnerf_jax.watermark.inputs import check_rgb_images, clean_references
 from mnerf_jax.watermark.loop import EmbedLoop, EmbedResult, seed_budgets
-from mnerf_jax.watermark.objective import uses_anchors, uses_clean_renders
+from mnerf_jax.watermark.objective import uses_clean_renders
 from mnerf_jax.watermark.run import WM_KIND, EmbedError
 from mnerf_jax.watermark.step import EmbedState, make_optimizer, total_steps
 
@@ -379,7 +379,6 @@ def embed(
             vgg,
             references,
             cache=cache,
-            anchor_decoder=jax.device_put(dict(loaded.variables)) if uses_anchors(cfg) else None,
         )
         result = loop.run(state, stop_at, started)
         cfg = loop.config.watermark  # the budget may have sized the field's schedule

@@ -1,6 +1,5 @@
 """What each embedding step reads: the training views checked as RGB, the IDs and view of each step, the
-step's batch, the clean model's renders of the training views (the quality budget's reference) and the clean
-images the anchor term reads.
+step's batch and the clean model's renders of the training views (the quality budget's reference).
 
 ``embed`` drives these; they hold no state, so a resumed run draws and reads exactly what an uninterrupted one
 does.
@@ -18,7 +17,6 @@ from tqdm.auto import tqdm
 
 from mnerf_jax.data import camera_rays
 from mnerf_jax.reader import keys as keys_lib
-from mnerf_jax.reader.train import cover_images
 from mnerf_jax.tensorf import run as runs
 from mnerf_jax.watermark.run import EmbedError
 
@@ -31,25 +29,6 @@ def check_rgb_images(images: np.ndarray, where: str) -> np.ndarray:
     if not np.issubdtype(arr.dtype, np.floating):
         raise EmbedError(f"{where}: images must be float in [0, 1], got {arr.dtype}")
     return arr.astype(np.float32)
-
-
-# Of the anchor term's clean images, this fraction are procedural textures, the rest crops of photographs.
-ANCHOR_PROCEDURAL_FRACTION = 0.35
-
-
-def anchor_images(seed: int, step: int, count: int, height: int, width: int) -> np.ndarray:
-    """The anchor term's clean images of step ``step``, ``[count, height, width, 3]`` float32 in [0, 1]:
-    colour-jittered crops of scikit-image's training photographs and procedural textures
-    (``reader.train.cover_images``; its held-out photographs are never drawn), drawn square at the longer
-    side and centre-cropped. A function of ``(seed, step)``, so a resumed run reads what an uninterrupted one
-    does."""
-    side = max(height, width)
-    source = cover_images.ImageSource(
-        cover_images.load_photos(cover_images.TRAIN_PHOTOS), side, ANCHOR_PROCEDURAL_FRACTION
-    )
-    images = source.sample(np.random.default_rng([int(seed), 0xA7C, int(step)]), int(count))
-    y, x = (side - height) // 2, (side - width) // 2
-    return np.ascontiguousarray(images[:, y : y + height, x : x + width])
 
 
 def step_batch(

@@ -29,8 +29,8 @@ from mnerf_jax.watermark import run as wm_run
 from mnerf_jax.watermark import sample_cache
 from mnerf_jax.watermark import time_budget as embed_budget
 from mnerf_jax.watermark.deferred import PatchLayout
-from mnerf_jax.watermark.inputs import anchor_images, step_batch, step_choice
-from mnerf_jax.watermark.objective import fidelity_budget_db, uses_anchors, uses_fidelity
+from mnerf_jax.watermark.inputs import step_batch, step_choice
+from mnerf_jax.watermark.objective import fidelity_budget_db, uses_fidelity
 from mnerf_jax.watermark.run import DECODER_FILE, META_FILE, STATE_VERSION, WM_KIND, EmbedError
 from mnerf_jax.watermark.step import EmbedState, StepSpec, embed_step, phase_of, step_config, total_steps
 
@@ -120,8 +120,6 @@ class EmbedLoop:
     cache: sample_cache.SampleCache | None = (
         None  # watermark.schedule.cache_source: the fitted field's samples
     )
-    # The starting decoder's variables, which phase 2's anchor term reads its clean images with.
-    anchor_decoder: Any = None
 
     def __post_init__(self) -> None:
         # What every step passes unchanged, made once rather than per step.
@@ -177,9 +175,6 @@ class EmbedLoop:
         if uses_fidelity(cfg):  # the budget as data: its ramp (fidelity_budget_db) compiles once
             budget = metrics_lib.psnr_to_mse(fidelity_budget_db(cfg, step, self._total_steps))
             batch["fidelity_mse"] = np.float32(budget)
-        if phase == 2 and uses_anchors(cfg) and self.anchor_decoder is not None:
-            h, w = self.layout.height, self.layout.width
-            batch["anchors"] = jnp.asarray(anchor_images(cfg.seed, step, cfg.losses.anchor_images, h, w))
         db, cb = self.budgets() if self.cache is None else (0, 0)  # a cached render marches no ray
         spec = StepSpec(
             model=self.config.model,
@@ -201,7 +196,6 @@ class EmbedLoop:
             self.vgg,
             self._total,
             spec=spec,
-            anchor_decoder=self.anchor_decoder if "anchors" in batch else None,
         )
         host = {k: float(v) for k, v in jax.device_get(metrics).items()}
         counts = {k: int(host[k]) for k in ("density_count", "colour_count")}

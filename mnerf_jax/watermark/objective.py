@@ -24,11 +24,6 @@ def uses_fidelity(cfg: WatermarkConfig) -> bool:
     return cfg.fidelity.psnr > 0
 
 
-def uses_anchors(cfg: WatermarkConfig) -> bool:
-    """True when phase 2's anchor term is on (``watermark.losses.lambda_anchor`` and ``anchor_images``)."""
-    return cfg.losses.lambda_anchor > 0 and cfg.losses.anchor_images > 0
-
-
 def uses_clean_renders(cfg: WatermarkConfig) -> bool:
     """True when a step needs the clean model's render of its view: the quality budget is on, or the clean
     term reads the clean model's renders (``watermark.losses.clean_negative``)."""

@@ -35,7 +35,6 @@ from mnerf_jax.watermark.objective import (
     patch_loss,
     perceptual_loss,
     split_renders,
-    uses_anchors,
     uses_clean_renders,
     uses_fidelity,
     windowed,
@@ -203,12 +202,9 @@ def make_image_loss(
     keys: jax.Array | None = None,
     ids: jax.Array | None = None,
     fidelity_budget: jax.Array | None = None,
-    anchors: jax.Array | None = None,
-    anchor_decoder: PyTree | None = None,
     null: jax.Array | None = None,
 ) -> Callable[[jax.Array, PyTree], tuple[jax.Array, dict[str, jax.Array]]]:
-    """The image-level loss ``(image [H, W, 3K], decoder params) -> (loss, {"bce", "key", "perceptual",
-    "anchor"})``.
+    """The image-level loss ``(image [H, W, 3K], decoder params) -> (loss, {"bce", "key", "perceptual"})``.
 
     ``image`` holds the K renders of one view side by side in its channels (:func:`split_renders`), one
     per row of ``message [K, L]``; each term is the mean over the K renders.
@@ -217,10 +213,7 @@ def make_image_loss(
     ``keys [N, L]`` given the renders' ``ids [K]`` (:func:`message_loss`), plus (``lambda_clean``) BCE(T) of
     the equally augmented unwatermarked view against the null word ``null [L]`` (``keys.null_message``, far
     from every key): ``target_image``, or the clean model's render
-    ``reference [H, W, 3]`` (``clean_negative = "clean_model"``), plus (``lambda_anchor``, where
-    ``anchors [A, H, W, 3]`` and the starting decoder's variables ``anchor_decoder`` are given) the mean
-    squared difference between the decoder's logits of the equally augmented clean images ``anchors`` and the
-    starting decoder's (held constant).
+    ``reference [H, W, 3]`` (``clean_negative = "clean_model"``).
     Phase 1: no augmentation, plus the perceptual term against ``target_image``. Both phases, with the
     quality budget on: ``lambda_fidelity ·`` :func:`fidelity_loss` against ``reference`` (its MSE budget
     ``fidelity_budget``, this step's value of the ramp, or the config's constant one).
@@ -255,19 +248,12 @@ def make_image_loss(
             loss = loss + cfg.losses.lambda_clean * losses.bce_with_logits(
                 clean_logits, null, cfg.losses.bce_temperature
             )
-        anchor = jnp.zeros((), jnp.float32)
-        if spec.phase == 2 and uses_anchors(cfg) and anchors is not None and anchor_decoder is not None:
-            ll2 = seen_ll2(anchors)  # no gradient reaches the anchor images: both decoders read one LL2
-            start = jax.lax.stop_gradient(decoder_lib.apply_ll2(anchor_decoder, ll2))
-            now = decoder_lib.apply_ll2({**decoder_state, "params": dec_params}, ll2)
-            anchor = jnp.mean(jnp.square(now - start))
-            loss = loss + cfg.losses.lambda_anchor * anchor
         perc = jnp.zeros((), jnp.float32)
         if spec.phase == 1 and cfg.losses.lambda_perceptual:
             targets = jnp.broadcast_to(target_image, renders.shape)
             perc = perceptual_loss(cfg.losses.perceptual, renders, targets, vgg_params)
             loss = loss + cfg.losses.lambda_perceptual * perc
-        aux = {"bce": bce, "key": key, "perceptual": perc, "anchor": anchor}
+        aux = {"bce": bce, "key": key, "perceptual": perc}
         if uses_fidelity(cfg):
             aux["fidelity"], aux["mse_clean"] = fidelity_loss(cfg, renders, reference, fidelity_budget)
             loss = loss + cfg.fidelity.weight * aux["fidelity"]
@@ -289,19 +275,16 @@ def embed_step(
     total: jax.Array,
     *,
     spec: StepSpec,
-    anchor_decoder: PyTree | None = None,
 ) -> tuple[EmbedState, dict[str, jax.Array]]:
     """One optimisation step on one view rendered with K IDs (deferred back-propagation).
 
     ``total``: int32 scalar, the steps of the whole schedule (the learning rates decay over it).
-    ``anchor_decoder``: the starting decoder's variables, which the anchor term (:func:`uses_anchors`)
-    reads ``batch["anchors"]`` with.
 
     batch: ``rays_o, rays_d, target [H·W, 3]``, ``message [K, L]`` (0/1 float), ``id [K]`` int32 (distinct),
-    ``keys [N, L]`` every ID's message (read where ``lambda_key`` > 0),
+    ``keys [N, L]`` every ID's message (read where ``lambda_key`` > 0), ``null [L]`` the word the clean
+    term reads clean images as (``keys.null_message``),
     and where :func:`uses_clean_renders` ``reference [H·W, 3]``: the clean model's render of the view;
-    with the quality budget, ``fidelity_mse []``: its MSE budget at this step (:func:`fidelity_budget_db`);
-    in phase 2 with the anchor term, ``anchors [A, H, W, 3]``: its clean images (``inputs.anchor_images``).
+    with the quality budget, ``fidelity_mse []``: its MSE budget at this step (:func:`fidelity_budget_db`).
     Returns the new state and scalar metrics (loss terms, bit accuracy of the un-augmented renders, PSNR;
     means over the K renders; largest per-patch sample counts).
     """
@@ -324,8 +307,6 @@ def embed_step(
         batch.get("keys"),
         batch["id"],
         batch.get("fidelity_mse"),
-        batch.get("anchors"),
-        anchor_decoder,
         batch.get("null"),
     )
     ploss = functools.partial(patch_loss, cfg) if spec.phase == 2 else None
@@ -362,7 +343,6 @@ def embed_step(
         "bce": aux["bce"],
         "key_ce": aux["key"],
         "perceptual": aux["perceptual"],
-        "anchor": aux["anchor"],
         "bit_acc": jnp.mean(((logits > 0).astype(jnp.float32) == message).astype(jnp.float32)),
         "psnr": metrics_lib.mse_to_psnr(jnp.mean(jnp.square(renders - target_image))),
         "density_count": aux["render_stats"]["density_count"],
