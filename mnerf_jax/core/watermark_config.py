@@ -379,20 +379,25 @@ _REMOVED = {"emb_activation": "relu", "budget_sizes_field": False}
 _REMOVED_IN_SECTION = {("losses", "lambda_anchor"): 0.0, ("losses", "anchor_images"): None}
 
 
+def _check_removed(name: str, value: Any, runs: Any) -> None:
+    """ConfigError (one line) when the removed setting ``watermark.NAME`` is ``value``, not the ``runs`` this
+    version still runs (None: any value)."""
+    if runs is not None and value != runs:
+        raise ConfigError(
+            f"watermark.{name} = {value!r} was removed in this version (it runs {runs!r} only); "
+            "the run was written by an earlier mnerf-jax"
+        )
+
+
 def _drop_removed(section: str, values: dict[str, Any]) -> dict[str, Any]:
-    """A section's table without its removed keys (:data:`_REMOVED_IN_SECTION`); a ConfigError where one is
-    set to a value this version does not run."""
+    """A section's table without its removed keys (:data:`_REMOVED_IN_SECTION`), each checked by
+    :func:`_check_removed`."""
     out = {}
     for key, value in values.items():
-        if (section, key) not in _REMOVED_IN_SECTION:
+        if (section, key) in _REMOVED_IN_SECTION:
+            _check_removed(f"{section}.{key}", value, _REMOVED_IN_SECTION[(section, key)])
+        else:
             out[key] = value
-            continue
-        runs = _REMOVED_IN_SECTION[(section, key)]
-        if runs is not None and value != runs:
-            raise ConfigError(
-                f"watermark.{section}.{key} = {value!r} was removed in this version (it runs {runs!r} only); "
-                "the run was written by an earlier mnerf-jax"
-            )
     return out
 
 
@@ -415,11 +420,7 @@ def translate_flat(values: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, value in values.items():
         if key in _REMOVED:
-            if value != _REMOVED[key]:
-                raise ConfigError(
-                    f"watermark.{key} = {value!r} was removed in this version (it runs {_REMOVED[key]!r} "
-                    "only); the run was written by an earlier mnerf-jax"
-                )
+            _check_removed(key, value, _REMOVED[key])
             continue
         if key in legacy and not isinstance(value, dict):
             section_name, name = legacy[key]
