@@ -397,7 +397,8 @@ def test_the_refit_set_reuses_clean_renders_of_the_training_views_it_is_given(ti
         wm, split.cameras, cfg, split.images, clean, clean_renders=references
     )
     views = len(split.images)
-    assert reused.negatives.shape == rendered.negatives.shape == (2 * views + 2, *split.images.shape[1:])
+    negatives = 2 * views + 2 + decoder_refit.generic_count(2 * views + 2)  # and images from elsewhere
+    assert reused.negatives.shape == rendered.negatives.shape == (negatives, *split.images.shape[1:])
     assert reused.negatives.dtype == rendered.negatives.dtype == np.uint8  # as a verifier receives them
     # The references are float16: a pixel may round to the next 8-bit level.
     np.testing.assert_allclose(reused.negatives.astype(int), rendered.negatives.astype(int), atol=1)
@@ -417,7 +418,9 @@ def test_the_refit_set_reuses_clean_renders_of_the_training_views_it_is_given(ti
     )
     chunk = decoder_refit.VIEWS_PER_CHUNK
     assert len(asked) == 1
-    assert cut.renders.shape[1] == views + chunk and cut.negatives.shape[0] == 2 * views + chunk
+    scene = 2 * views + chunk
+    assert cut.renders.shape[1] == views + chunk
+    assert cut.negatives.shape[0] == scene + decoder_refit.generic_count(scene)
     np.testing.assert_array_equal(cut.renders[:, :views], rendered.renders[:, :views])  # training views first
 
 
@@ -442,3 +445,32 @@ def test_phase_three_attacks_its_negatives_even_when_the_renders_go_untouched(mo
     assert data.negatives.dtype == np.uint8
     # Two 8-bit keys always leave a word 4 bits from both (flip where they agree, split where they differ).
     assert (data.null[None] != data.messages).sum(axis=1).min() >= 4
+
+
+def test_phase_three_attacks_its_negatives_once_a_step_when_the_run_names_one_attack(monkeypatch) -> None:
+    # Two distinct attacks cannot be drawn from one name: a run trained under JPEG alone still gets phase 3.
+    data, variables = _two_class_set()
+    seen: list[tuple[str, int]] = []
+    real = augment.random_policy
+
+    def spy(key, images, strength="low", k=2, p=0.75, names=None):
+        seen.append((strength, k))
+        return real(key, images, strength, k, p, names)
+
+    monkeypatch.setattr(augment, "random_policy", spy)
+    cfg = wm_config(phase3_steps=10, phase3_batch=8, augment_prob=0.0, augment_names=("jpeg",))
+    step = decoder_refit.make_refit_step(cfg, variables)
+    opt_state = decoder_refit.refit_optimizer(cfg).init(variables["params"])
+    jax.eval_shape(step, variables["params"], opt_state, jax.random.key(0), data, 0, 10)
+    assert seen == [("medium", 1)]
+
+
+def test_the_generic_negatives_are_photo_crops_and_textures_of_the_renders_shape() -> None:
+    # Non-square renders get images of their own shape; the draw is fixed by its seed; photographs and
+    # textures alternate, and none is blank.
+    images = decoder_refit.generic_negatives(6, 24, 40)
+    assert images.shape == (6, 24, 40, 3) and images.dtype == np.uint8
+    np.testing.assert_array_equal(images, decoder_refit.generic_negatives(6, 24, 40))
+    assert not np.array_equal(images, decoder_refit.generic_negatives(6, 24, 40, seed=1))
+    assert all(image.std() > 1 for image in images)
+    assert decoder_refit.generic_count(400) == 133 and decoder_refit.generic_count(1) == 1

@@ -80,6 +80,18 @@ def test_the_window_centres_on_the_image_without_a_backdrop() -> None:
     assert auto.backdrop_of("llff", False) is None and auto.backdrop_of("nerfstudio", True) is None
 
 
+def test_a_read_close_to_the_decoders_side_stays_as_it_is_and_a_larger_one_is_downscaled() -> None:
+    base = config_lib.load_preset(auto.METHOD_PRESET).watermark.reading
+    assert base.max_side == 0 and base.window == 0.72
+    sides = {}
+    for side in (64, 100, 133, 135, 200, 800):
+        sides[side] = chosen(auto.choose(facts(height=side, width=side))).watermark.reading.max_side
+    # 0.72 of the side: 96 px at 133² is within 1.5 × 64, 97 px at 135² is not.
+    assert sides == {64: 0, 100: 0, 133: 0, 135: 64, 200: 64, 800: 64}
+    assert auto.read_side(facts(height=100, width=150), 0.0) == 150
+    assert auto.read_side(facts(height=100, width=150), 0.72) == 72
+
+
 def test_the_source_is_cached_only_when_its_samples_fit_in_memory() -> None:
     roomy = chosen(auto.choose(facts())).watermark.schedule
     assert roomy.cache_source

@@ -196,6 +196,8 @@ def test_a_tiny_forward_facing_scene_embeds_with_phase3_novel_views(
     views = len(split.cameras) + 2
     # Without augmentations the set keeps each render as its two reads (as it is, rounded; phase3.reads_of).
     assert data_set.compact and data_set.renders.shape[:3] == (2, views, 2)
-    assert data_set.negatives.shape[0] == len(split.cameras)  # the photographs (no clean model given)
+    # The photographs (no clean model given), and images from outside the scene.
+    photographs = len(split.cameras)
+    assert data_set.negatives.shape[0] == photographs + phase3.generic_count(photographs)
     assert np.all(np.isfinite(data_set.renders))
     assert data_set.renders.min() >= 0.0 and data_set.renders.max() <= 1.0

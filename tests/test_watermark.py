@@ -206,6 +206,7 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
         "phase3.batch": 32,
         "phase3.lambda_clean": 0.3,
         "reading.jitter": 0,
+        "reading.max_side": 64,
         "phase3.view_density": "angles",
         "phase3.elevation_margin": 0.0,
         "schedule.cache_source": False,
@@ -223,8 +224,8 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
     budget = [float(fidelity_budget_db(cfg, step, total)) for step in (0, 945, 1620, 2699)]
     assert budget == pytest.approx([20.0, 20.0, 41.5, 41.5], abs=1e-4)
     assert 20.0 < float(fidelity_budget_db(cfg, 1300, total)) < 41.5
-    # Then the decoder alone: 8,000 steps of 16 renders on the training views and 200 novel views, its
-    # negatives weighed 1, with 19 of the 60 minutes kept for it; the novel views spread over the sphere's
+    # Then the decoder alone: 24,000 steps of 16 renders on the training views and 200 novel views, its
+    # negatives weighed 1, with 35 of the 60 minutes kept for it; the novel views spread over the sphere's
     # area 5° past the training cameras' elevations; renders are read over the 9 windows within a pixel.
     phase3 = (
         cfg.phase3.steps,
@@ -236,7 +237,8 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
         cfg.phase3.view_density,
         cfg.phase3.elevation_margin,
     )
-    assert phase3 == (8000, 16, 200, 1.0, 19, 60, "sphere", 5.0) and cfg.reading.jitter == 1
+    assert phase3 == (24000, 16, 200, 1.0, 35, 60, "sphere", 5.0) and cfg.reading.jitter == 1
+    assert cfg.reading.max_side == 0  # its 72-px window read as it is
 
 
 def test_watermark_grid_follows_upsampling_and_shrinking() -> None:

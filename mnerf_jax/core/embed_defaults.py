@@ -10,6 +10,8 @@ run, the read window, phase 3's decoder refit; docs/results.md). What the scene 
 * the phase-3 reserve follows the time budget, and more IDs than one step renders lengthen the field's
   schedule so that each ID is rendered as often;
 * the read window centres on the object against a uniform backdrop, on the image otherwise;
+* a read window well above the decoder's training side is downscaled to it (``reading.max_side``); one
+  close to it is read as it is, since resampling blurs the finest patterns the field writes;
 * the source is cached only when its samples fit in half the free memory; else deferred patches.
 
 ``choose(facts)`` is pure (facts in, settings out), so the choice is tested without a machine; the embedding
@@ -26,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from mnerf_jax.core import config as config_lib
-from mnerf_jax.core.watermark_config import MAX_AUTO_IDS_PER_STEP
+from mnerf_jax.core.watermark_config import MAX_AUTO_IDS_PER_STEP, ReadingConfig
 
 AUTO = "auto"  # --config's default: this module's choice
 FROM_RUN = "run"  # --config run: the [watermark] section the fitted run recorded
@@ -45,6 +47,8 @@ CACHE_SAMPLES_PER_RAY = 16
 CACHE_MEMORY_SHARE = 0.5  # the share of free memory the cache may take
 UNCACHED_PATCH = 128  # deferred patches' side when the source is not cached
 SYNTHETIC_DATASETS = ("blender", "procedural")  # rendered on a uniform backdrop
+# Reads up to this many times the decoder's training side stay as they are (docs/experiments/).
+READ_AS_IS_FACTOR = 1.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,6 +125,15 @@ def backdrop_of(scene_kind: str, white_bg: bool) -> float | None:
     return None
 
 
+def read_side(facts: SceneFacts, window: float) -> int:
+    """The longer side (pixels) of what the decoder is given of a training view: the read window's side,
+    or the whole view's longer side when ``window`` is 0."""
+    if not window:
+        return max(facts.height, facts.width)
+    shorter = min(facts.height, facts.width)
+    return max(4, min(shorter, round(window * shorter)))  # read_window.window_side, without the reader
+
+
 def choose(facts: SceneFacts) -> Choice:
     """The embedding for ``facts`` (see the module's docstring)."""
     if preset_ships_embedding(facts.fit_preset):
@@ -156,6 +169,15 @@ def choose(facts: SceneFacts) -> Choice:
         )
     elif facts.backdrop != base.reading.background:
         settings.append((f"watermark.reading.background={facts.backdrop:g}", "the scene's backdrop"))
+
+    side, trained = read_side(facts, base.reading.window), ReadingConfig().max_side
+    if not base.reading.max_side and side > READ_AS_IS_FACTOR * trained:
+        settings.append(
+            (
+                f"watermark.reading.max_side={trained}",
+                f"its {side}-px read downscaled to the decoder's training side",
+            )
+        )
 
     if cache_bytes(facts) > CACHE_MEMORY_SHARE * facts.memory_bytes:
         gib = cache_bytes(facts) / 2**30

@@ -36,6 +36,7 @@ from mnerf_jax.imaging import augment, losses
 from mnerf_jax.reader import decoder as decoder_lib
 from mnerf_jax.reader import dwt, read_window
 from mnerf_jax.reader import keys as keys_lib
+from mnerf_jax.reader.train import cover_images
 from mnerf_jax.tensorf import run as runs
 from mnerf_jax.watermark import run as wm_run
 
@@ -54,6 +55,10 @@ NEGATIVE_STRENGTH = "medium"
 NOVEL_VIEWS_SHARE = 0.5
 # Views rendered (every ID) and reduced to what the decoder reads at a time: the full-size renders held.
 VIEWS_PER_CHUNK = 8
+# Images from outside the scene among the negatives, per scene negative: a decoder refitted on one scene's
+# images alone reads photographs and textures as keys the longer it trains (docs/experiments/).
+GENERIC_PER_SCENE_NEGATIVE = 1 / 3
+GENERIC_SEED = 0x6E6E  # their draw: fixed, and apart from the false-claims measurement's
 
 
 @flax.struct.dataclass
@@ -78,11 +83,13 @@ class RefitSet:
 
 
 def negative_attacks(cfg: WatermarkConfig) -> AugmentConfig:
-    """The attacks phase 3's negatives go through, whatever the run trains its renders with: two a step,
-    each with probability 0.75, at :data:`NEGATIVE_STRENGTH`, from the run's ``augment.names`` (all 14 when
-    empty). A verifier meets clean renders a platform re-encoded or colour-graded; a decoder that saw them
-    only untouched reads such images as keys (docs/experiments/, false claims)."""
-    return AugmentConfig(strength=NEGATIVE_STRENGTH, names=cfg.augment.names, per_step=2, prob=0.75)
+    """The attacks phase 3's negatives go through, whatever the run trains its renders with: two a step (one
+    when the run names one), each with probability 0.75, at :data:`NEGATIVE_STRENGTH`, from the run's
+    ``augment.names`` (all 14 when empty). A verifier meets clean renders a platform re-encoded or
+    colour-graded; a decoder that saw them only untouched reads such images as keys (docs/experiments/,
+    false claims)."""
+    per_step = min(2, len(cfg.augment.names or augment.AUGMENTATION_NAMES))  # a run may name only one
+    return AugmentConfig(strength=NEGATIVE_STRENGTH, names=cfg.augment.names, per_step=per_step, prob=0.75)
 
 
 def keeps_reads_only(cfg: WatermarkConfig) -> bool:
@@ -197,6 +204,29 @@ def _spiral_cameras(
     )
 
 
+def generic_count(scene_negatives: int) -> int:
+    """How many images from outside the scene join ``scene_negatives`` of the scene's own."""
+    return max(1, round(GENERIC_PER_SCENE_NEGATIVE * scene_negatives))
+
+
+def generic_negatives(count: int, height: int, width: int, seed: int = GENERIC_SEED) -> np.ndarray:
+    """``[count, height, width, 3]`` uint8 images that are no render of the scene: crops of the decoder
+    training's photographs (``cover_images.TRAIN_PHOTOS``; the held-out ones stay unseen) and procedural
+    textures, alternately, each made square at the longer side and cut to the render's aspect."""
+    rng = np.random.default_rng([seed, height, width])
+    photos = cover_images.load_photos(cover_images.TRAIN_PHOTOS)
+    side = max(height, width)
+    y, x = (side - height) // 2, (side - width) // 2
+    out = np.empty((count, height, width, 3), np.uint8)
+    for i in range(count):
+        if i % 2:
+            image = cover_images.procedural_image(rng, side)
+        else:
+            image = cover_images.random_crop(rng, photos[int(rng.integers(0, len(photos)))], side)
+        out[i] = np.round(np.clip(image[y : y + height, x : x + width], 0, 1) * 255)
+    return out
+
+
 def render_refit_set(
     run: Any,
     cameras: Cameras,
@@ -215,7 +245,8 @@ def render_refit_set(
     The negatives: ``ground_truth [V, H, W, 3]`` (the training images) and, given the run it was embedded
     into (``clean_model``, a loaded TensoRF run), its renders of the same views: an unwatermarked render is
     what a verifier must answer "no watermark" for, and it lies far nearer the watermarked renders than the
-    photographs do; with the photographs alone the refitted decoder claims clean renders as IDs.
+    photographs do; with the photographs alone the refitted decoder claims clean renders as IDs. Then a third
+    as many images from outside the scene (:func:`generic_negatives`).
     ``clean_renders [V, H, W, 3]``: the clean model's
     renders of ``cameras`` when the caller has them already (the quality budget's references), so that only
     the novel views are rendered again (a clean render costs about as much as all 16 IDs' renders of a view:
@@ -274,7 +305,10 @@ def render_refit_set(
     renders = np.stack([np.concatenate([part[n] for part in parts]) for n in range(keys.num_ids)])
     messages = np.asarray(keys.messages, np.uint8)
     null = keys_lib.null_message(messages)
-    return RefitSet(renders.astype(np.float32), messages, np.concatenate(negatives), null, compact)
+    scene_negatives = np.concatenate(negatives)
+    generic = generic_negatives(generic_count(len(scene_negatives)), *scene_negatives.shape[1:3])
+    negatives_all = np.concatenate([scene_negatives, generic])
+    return RefitSet(renders.astype(np.float32), messages, negatives_all, null, compact)
 
 
 def refit_rate(cfg: WatermarkConfig, step: Any, total: Any) -> jax.Array:
