@@ -7,10 +7,10 @@ field). Phase 3 renders that set once (``watermark.phase3.views`` more views aro
 their sphere for object-centred scenes, on the spiral render path for forward-facing ones), then trains the
 decoder's weights alone on it: the message BCE and the key term of phase 2 on every render, and
 ``phase3_lambda_clean`` · BCE against the null word (``keys.null_message``, far from every key) on
-unwatermarked 8-bit images under attack (the training views' photographs, and the clean model's renders of
-every view used); half of the renders are rounded to 8 bits as a saved PNG is, and the run's phase-2
-augmentations apply to them when it has them. The field, and so the PSNR, does not change (results:
-docs/experiments/).
+unwatermarked 8-bit images under attack (the training views' photographs, the clean model's renders of
+every view used, and a third as many images from outside the scene); half of the renders are rounded to 8
+bits as a saved PNG is, and the run's phase-2 augmentations apply to them when it has them. The field, and
+so the PSNR, does not change (results: docs/experiments/).
 """
 
 from __future__ import annotations
