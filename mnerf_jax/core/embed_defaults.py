@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from mnerf_jax.core import config as config_lib
-from mnerf_jax.core.watermark_config import MAX_AUTO_IDS_PER_STEP, ReadingConfig
+from mnerf_jax.core.watermark_config import MAX_AUTO_IDS_PER_STEP, ReadingConfig, window_side
 
 AUTO = "auto"  # --config's default: this module's choice
 FROM_RUN = "run"  # --config run: the [watermark] section the fitted run recorded
@@ -130,8 +130,7 @@ def read_side(facts: SceneFacts, window: float) -> int:
     or the whole view's longer side when ``window`` is 0."""
     if not window:
         return max(facts.height, facts.width)
-    shorter = min(facts.height, facts.width)
-    return max(4, min(shorter, round(window * shorter)))  # read_window.window_side, without the reader
+    return window_side(facts.height, facts.width, window)
 
 
 def choose(facts: SceneFacts) -> Choice:

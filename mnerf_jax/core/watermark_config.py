@@ -14,7 +14,7 @@ import dataclasses
 import functools
 from typing import Any, Literal, get_args, get_origin, get_type_hints
 
-from mnerf_jax.core.errors import ConfigError
+from mnerf_jax.core.errors import ConfigError, MnerfError
 
 Variant = Literal["multinerf", "no_grid", "no_film", "frozen_geometry", "early", "waterf", "waterf_mod"]
 Perceptual = Literal["watson", "vgg"]
@@ -181,6 +181,22 @@ def check_search_grid(scales: Any, degrees: Any, prefix: str) -> None:
         len(degrees) > 0 and all(-180.0 <= d <= 180.0 for d in degrees),
         f"{prefix}degrees are angles in [-180, 180], got {list(degrees)}",
     )
+
+
+def check_fraction(fraction: float, name: str = "the read window") -> None:
+    """MnerfError unless ``fraction`` is in (0, 1] (``name``: what the message calls the setting)."""
+    if not 0.0 < fraction <= 1.0:
+        raise MnerfError(
+            f"{name} is a fraction of the image's shorter side, in (0, 1] (0: the whole image), "
+            f"got {fraction}"
+        )
+
+
+def window_side(height: int, width: int, fraction: float) -> int:
+    """The read window's side in pixels for an image ``height × width`` (the whole shorter side at fraction
+    1); ``reader.read_window`` cuts it, the default embedding sizes its read by it."""
+    check_fraction(fraction)
+    return max(4, min(height, width, round(fraction * min(height, width))))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mnerf_jax.core.errors import MnerfError
-from mnerf_jax.core.watermark_config import ReadingConfig
+from mnerf_jax.core.watermark_config import ReadingConfig, window_side
 
 # Foreground weight ramps from 0 to 1 as a pixel's largest channel difference from the background goes from
 # FOREGROUND_LOW to FOREGROUND_HIGH, after a 4×4 box filter (Gaussian noise of σ shrinks to σ/4). Noise
@@ -33,21 +33,6 @@ from mnerf_jax.core.watermark_config import ReadingConfig
 FOREGROUND_LOW = 0.1
 FOREGROUND_HIGH = 0.2
 SMOOTHING = 4
-
-
-def check_fraction(fraction: float, name: str = "the read window") -> None:
-    """MnerfError unless ``fraction`` is in (0, 1] (``name``: what the message calls the setting)."""
-    if not 0.0 < fraction <= 1.0:
-        raise MnerfError(
-            f"{name} is a fraction of the image's shorter side, in (0, 1] (0: the whole image), "
-            f"got {fraction}"
-        )
-
-
-def window_side(height: int, width: int, fraction: float) -> int:
-    """The window's side in pixels for an image ``height × width`` (the whole shorter side at fraction 1)."""
-    check_fraction(fraction)
-    return max(4, min(height, width, round(fraction * min(height, width))))
 
 
 def foreground_weight(images: jax.Array, background: float) -> jax.Array:

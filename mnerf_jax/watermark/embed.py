@@ -57,8 +57,9 @@ from mnerf_jax.core import config as config_lib
 from mnerf_jax.core import embed_defaults, rundir
 from mnerf_jax.core.checkpoint import CheckpointStore, check_compatible
 from mnerf_jax.core.config import Config
+from mnerf_jax.core.watermark_config import check_fraction
 from mnerf_jax.imaging import augment, losses
-from mnerf_jax.reader import decoder_io, dwt, read_window
+from mnerf_jax.reader import decoder_io, dwt
 from mnerf_jax.reader import keys as keys_lib
 from mnerf_jax.tensorf import budgets, raymarch
 from mnerf_jax.tensorf import run as runs
@@ -146,7 +147,7 @@ def resolve_config(
             f"unknown watermark.reading.wavelet {cfg.reading.wavelet!r} ({' | '.join(dwt.DEC_LO)})"
         )
     if cfg.reading.window:
-        read_window.check_fraction(cfg.reading.window, "watermark.reading.window")
+        check_fraction(cfg.reading.window, "watermark.reading.window")
     if cfg.reading.jitter < 0 or (cfg.reading.jitter and not cfg.reading.window):
         raise EmbedError(
             f"watermark.reading.jitter is a radius in pixels ≥ 0 that moves the read window, and "
