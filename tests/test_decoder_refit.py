@@ -239,6 +239,28 @@ def test_phase_three_sizes_its_schedule_to_the_minutes_left() -> None:
     assert float(decoder_refit.refit_rate(cfg, short["steps"] - 1, short["scheduled"])) < 0.05 * cfg.phase3.lr
 
 
+@pytest.mark.parametrize(("minutes_left", "scheduled"), [((10.0, 1e9), 60), ((1e9, 0.0), 27)])
+def test_phase_three_sizes_its_schedule_again_as_it_runs(
+    monkeypatch: pytest.MonkeyPatch, minutes_left: tuple[float, float], scheduled: int
+) -> None:
+    # A clock that reads 1 s more at each call: the timed steps take 1 s each, so the first sizing (10 s
+    # left) plans 21 + 9 steps; the next sizing, 5 steps on, sees 0.2 s steps and room for all 60 again.
+    # Time that runs out after a roomy start ends the schedule at the step after the next sizing.
+    monkeypatch.setattr(decoder_refit, "RESIZE_EVERY", 5)
+    data, variables = _two_class_set()
+    cfg = wm_config(phase3_steps=60, phase3_batch=4, augment_prob=0.0, seed=2)
+    ticks = iter(range(10**6))
+    answers = iter(minutes_left)
+    _, metrics = decoder_refit.refit_decoder(
+        cfg,
+        variables,
+        data,
+        seconds_left=lambda: next(answers, minutes_left[-1]),
+        clock=lambda: float(next(ticks)),
+    )
+    assert metrics["scheduled"] == metrics["steps"] == scheduled
+
+
 def test_phase_three_follows_the_fields_schedule_and_the_budget_keeps_room_for_it() -> None:
     cfg = wm_config(phase1_steps=2, phase2_steps=3, phase3_steps=4)
     assert [phase_of(s, cfg) for s in range(7)] == [1, 1, 2, 2, 2, 3, 3]

@@ -341,6 +341,9 @@ def refit_optimizer(cfg: WatermarkConfig) -> optax.GradientTransformation:
 SIZING_STEPS = 20
 # The share of the minutes left the sized schedule plans for (steps vary; the budget ends an overrun).
 SIZING_MARGIN = 0.97
+# Steps between re-sizings, each by the mean step of the steps since the last: a busy moment at the start
+# shortens the schedule only until the steps run at their pace again (up to ``phase3.steps``).
+RESIZE_EVERY = 500
 
 
 def make_refit_step(
@@ -428,16 +431,18 @@ def refit_decoder(
     keep_going: Callable[[], bool] = lambda: True,
     seconds_left: Callable[[], float] | None = None,
     progress: bool = False,
+    clock: Callable[[], float] = time.perf_counter,
 ) -> tuple[PyTree, dict[str, float]]:
     """Up to ``phase3.steps`` decoder steps on ``data`` from ``decoder_vars`` (``{"params", "batch_stats",
     ...}``; only ``params`` change). ``keep_going()`` is asked before each step (the time budget).
 
     ``seconds_left()`` (the time budget's, when it has one): after :data:`SIZING_STEPS` timed steps the
     schedule is shortened to the steps that fit in :data:`SIZING_MARGIN` of it, so that its warm-up and
-    cosine decay end inside the budget, not cut off at a high rate where steps run slower. Without it, or when
-    all the steps fit, the schedule is ``phase3.steps`` long and the run deterministic in
-    ``watermark.seed``. Returns the new variables and ``{"steps", "scheduled", "loss"}`` (steps taken, the
-    schedule's length, the last step's loss).
+    cosine decay end inside the budget, not cut off at a high rate where steps run slower; every
+    :data:`RESIZE_EVERY` steps it is sized again (never beyond ``phase3.steps``) by the mean step since the
+    last sizing (``clock``, seconds). Without it, or when all the steps fit, the schedule is ``phase3.steps``
+    long and the run deterministic in ``watermark.seed``. Returns the new variables and ``{"steps",
+    "scheduled", "loss"}`` (steps taken, the schedule's length, the last step's loss).
     """
     step = make_refit_step(cfg, decoder_vars)
     # Committed to the device as the step's outputs are: otherwise the second step compiles again (another
@@ -448,29 +453,39 @@ def refit_decoder(
     opt_state = jax.device_put(refit_optimizer(cfg).init(params), device)
     key = jax.random.fold_in(jax.random.key(int(cfg.seed)), 0xDEC3)
     loss = jnp.full((), jnp.nan)
-    total = int(cfg.phase3.steps)
+    configured = total = int(cfg.phase3.steps)
     done = 0
     timed: list[float] = []
+    last_sized = (0, 0.0)  # (step, clock) of the last sizing
     bar = tqdm(
         total=total, disable=not progress, desc="embed phase 3 (decoder)", unit="step", dynamic_ncols=True
     )
+
+    def size(step_s: float) -> None:
+        nonlocal total, last_sized
+        fits = done + int(SIZING_MARGIN * max(seconds_left(), 0.0) / max(step_s, 1e-9))
+        total = max(min(configured, fits), done + 1)
+        last_sized = (done, clock())
+        bar.total = total
+        bar.refresh()
+
     try:
         while done < total:
             if not keep_going():
                 break
             if seconds_left is not None and done == SIZING_STEPS + 1:  # steps 1..SIZING_STEPS timed
-                step_s = float(np.median(timed))
-                fits = done + int(SIZING_MARGIN * max(seconds_left(), 0.0) / step_s)
-                total = max(min(total, fits), done + 1)
-                bar.total = total
-                bar.refresh()
-            tick = time.perf_counter()
+                size(float(np.median(timed)))
+            elif seconds_left is not None and done > SIZING_STEPS and done - last_sized[0] == RESIZE_EVERY:
+                jax.block_until_ready(loss)
+                size((clock() - last_sized[1]) / RESIZE_EVERY)
+            timing = seconds_left is not None and 1 <= done <= SIZING_STEPS  # the first compiles: not timed
+            tick = clock() if timing else 0.0
             params, opt_state, loss = step(
                 params, opt_state, jax.random.fold_in(key, done), arrays, jnp.int32(done), jnp.int32(total)
             )
-            if seconds_left is not None and 1 <= done <= SIZING_STEPS:  # the first step compiles: not timed
+            if timing:
                 jax.block_until_ready(loss)
-                timed.append(time.perf_counter() - tick)
+                timed.append(clock() - tick)
             done += 1
             if done % 25 == 0:  # reading the loss waits for the step: not every step
                 bar.set_postfix(loss=f"{float(loss):.4f}")
