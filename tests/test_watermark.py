@@ -192,6 +192,7 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
 
     cfg = config.load_preset("embed_cpu_quality").watermark
     base = config.load_preset("embed_cpu").watermark
+    assert W.phase_steps(cfg, num_ids=16) == (100, 7800)  # three times the field steps: cached steps are cheap
     assert {
         **config.flat_items(cfg),
         "fidelity.psnr": 0.0,
@@ -218,12 +219,12 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
     cfg.check_ids(16)
     # One patch covers a lego 1/8 view (100 px): the deferred path's single-render branch.
     assert patch_layout(100, 100, cfg.schedule.patch_size).num_patches == 1
-    # 20 dB until 35 % of the field's 2,700 steps, 41.5 dB from 60 % on.
+    # 20 dB until 35 % of the field's 7,900 steps, 41.5 dB from 60 % on.
     total = sum(W.phase_steps(cfg, num_ids=16))
-    assert total == 2700
-    budget = [float(fidelity_budget_db(cfg, step, total)) for step in (0, 945, 1620, 2699)]
+    assert total == 7900
+    budget = [float(fidelity_budget_db(cfg, step, total)) for step in (0, 2765, 4740, 7899)]
     assert budget == pytest.approx([20.0, 20.0, 41.5, 41.5], abs=1e-4)
-    assert 20.0 < float(fidelity_budget_db(cfg, 1300, total)) < 41.5
+    assert 20.0 < float(fidelity_budget_db(cfg, 3800, total)) < 41.5
     # Then the decoder alone: 24,000 steps of 16 renders on the training views and 200 novel views, its
     # negatives weighed 1, with 35 of the 60 minutes kept for it; the novel views spread over the sphere's
     # area 5° past the training cameras' elevations; renders are read over the 9 windows within a pixel.
