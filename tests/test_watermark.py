@@ -192,7 +192,7 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
 
     cfg = config.load_preset("embed_cpu_quality").watermark
     base = config.load_preset("embed_cpu").watermark
-    assert W.phase_steps(cfg, num_ids=16) == (100, 7800)  # three times the field steps: cached steps are cheap
+    assert W.phase_steps(cfg, num_ids=16) == (100, 7800)  # three times embed_cpu's field steps
     assert {
         **config.flat_items(cfg),
         "fidelity.psnr": 0.0,
