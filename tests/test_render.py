@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from mnerf_jax.core.config import ModelConfig
@@ -115,6 +115,7 @@ def camera_rays(n: int, seed: int = 0, spread: float = 0.35):
 
 @SETTINGS
 @given(seed=st.integers(0, 2**16), scale=st.sampled_from([0.1, 3.0, 200.0]))
+@example(seed=236, scale=0.1)  # a case whose transmittance rises by 2 ulps
 def test_compositing_laws_and_scan_equals_cumsum(seed, scale):
     rng = np.random.default_rng(seed)
     sigma = rng.exponential(scale, size=(6, 40)).astype(np.float32) * (rng.uniform(size=(6, 40)) < 0.6)
@@ -124,7 +125,9 @@ def test_compositing_laws_and_scan_equals_cumsum(seed, scale):
     w, trans = np.asarray(w), np.asarray(trans)
     assert np.all(w >= 0)
     assert np.all(w.sum(-1) <= 1 + 1e-6)
-    assert np.all(np.diff(trans, axis=-1) <= 1e-7)  # transmittance never increases
+    # Transmittance never increases, up to float32 rounding: XLA's cumsum is a parallel scan, whose partial
+    # sums are not monotone to the last ulp (seed 236 at scale 0.1 rises by 2 ulps).
+    assert np.all(np.diff(trans, axis=-1) <= 8 * np.finfo(np.float32).eps)
     np.testing.assert_allclose(trans[:, 0], 1.0)
     np.testing.assert_allclose(w, np.asarray(w_ref), atol=1e-5)
     np.testing.assert_allclose(trans, np.asarray(trans_ref), atol=1e-5)
