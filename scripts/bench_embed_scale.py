@@ -337,9 +337,8 @@ def measure(
 
 
 def project(row: dict[str, Any], cfg: Any, seen: dict[str, Any], views: int) -> dict[str, Any]:
-    """The whole default embedding's wall time from the measured pieces, the time budget ending the field
-    (and sizing phase 3) as ``loop.EmbedLoop.run`` and ``phase3.refit_decoder`` do."""
-    from mnerf_jax.watermark import phase3
+    """The whole default embedding's wall time from the measured pieces, the time budget sizing the field
+    and phase 3 as ``loop.EmbedLoop.run`` and ``phase3.refit_decoder`` do."""
     from mnerf_jax.watermark import time_budget as clock_lib
 
     p1, p2 = row["schedule"]
@@ -354,8 +353,15 @@ def project(row: dict[str, Any], cfg: Any, seen: dict[str, Any], views: int) -> 
     def field_end(limit: float | None) -> tuple[float, int]:
         """Seconds at the field's end and its steps, within ``limit`` seconds as the loop ends it."""
         now = (row["startup_s"] or 0.0) + (row["compile_s"] or 0.0)
-        done = 0
+        done, horizon = 0, len(field)
         for step_s in field:
+            if (
+                limit and kept and p2 and done == p1 + clock_lib.SIZING_STEPS + 1
+            ):  # the field's schedule sized
+                left = limit - now - kept - save_s - clock_lib.RESERVE_S
+                horizon = clock_lib.steps_that_fit(done, left, m2, len(field))
+            if done >= horizon:
+                break
             # The loop's test before a step: that step, the time kept for phase 3, a checkpoint, the reserve.
             if limit and done and now + step_s + kept + save_s + clock_lib.RESERVE_S > limit:
                 break
@@ -379,7 +385,7 @@ def project(row: dict[str, Any], cfg: Any, seen: dict[str, Any], views: int) -> 
         p3 = cfg.phase3.steps
         if budget:  # phase 3's schedule sized to the minutes left
             left = budget - now - save_s - clock_lib.RESERVE_S
-            p3 = max(min(p3, int(phase3.SIZING_MARGIN * max(left, 0.0) / m3)), 1)
+            p3 = clock_lib.steps_that_fit(0, left, m3, p3)
         now += p3 * m3 + save_s
     elif cfg.phase3.steps:
         now = unbudgeted = float("nan")  # phase 3 did not run (the budget left it no time)

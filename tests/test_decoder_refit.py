@@ -235,7 +235,7 @@ def test_phase_three_sizes_its_schedule_to_the_minutes_left() -> None:
     for x, y in zip(jax.tree.leaves(plain), jax.tree.leaves(roomy), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     _, short = decoder_refit.refit_decoder(cfg, variables, data, seconds_left=lambda: 0.0)
-    assert short["scheduled"] == short["steps"] == decoder_refit.SIZING_STEPS + 2
+    assert short["scheduled"] == short["steps"] == time_budget.SIZING_STEPS + 2
     assert float(decoder_refit.refit_rate(cfg, short["steps"] - 1, short["scheduled"])) < 0.05 * cfg.phase3.lr
 
 
@@ -246,7 +246,7 @@ def test_phase_three_sizes_its_schedule_again_as_it_runs(
     # A clock that reads 1 s more at each call: the timed steps take 1 s each, so the first sizing (10 s
     # left) plans 21 + 9 steps; the next sizing, 5 steps on, sees 0.2 s steps and room for all 60 again.
     # Time that runs out after a roomy start ends the schedule at the step after the next sizing.
-    monkeypatch.setattr(decoder_refit, "RESIZE_EVERY", 5)
+    monkeypatch.setattr(time_budget, "RESIZE_EVERY", 5)
     data, variables = _two_class_set()
     cfg = wm_config(phase3_steps=60, phase3_batch=4, augment_prob=0.0, seed=2)
     ticks = iter(range(10**6))
@@ -366,6 +366,48 @@ def test_a_field_the_time_budget_ends_still_gets_phase_three(
     monkeypatch.undo()
     again = E.embed(tiny.fit, run, 2, 8, overrides=overrides, resume=True, **args)
     assert again.steps == 9 and not again.stopped_by_budget
+
+
+def test_the_field_schedule_is_sized_to_the_minutes_the_budget_leaves_it(
+    tiny: TinyRuns, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # With phase 3 to follow, the field's schedule shrinks to the steps its share of the budget allows, and
+    # its quality ramp runs over those steps: the budget is at its final value when the field ends. One
+    # timed phase-2 step sizes it here (SIZING_STEPS = 1), and the field's share has room for one more step.
+    monkeypatch.setattr(time_budget, "SIZING_STEPS", 1)
+    monkeypatch.setattr(time_budget.BudgetClock, "seconds_left", lambda self, now: self.kept_s + 1e-3)
+    overrides = [
+        *tiny.embed_overrides,
+        "watermark.schedule.phase1_steps=2",
+        "watermark.schedule.phase2_steps=6",
+        "watermark.fidelity.psnr=40",
+        "watermark.fidelity.psnr_start=20",
+        "watermark.fidelity.ramp=[0.35, 0.6]",
+        "watermark.phase3.steps=4",
+        "watermark.phase3.views=2",
+        "watermark.phase3.batch=4",
+        "watermark.time_budget.minutes=30",
+        "watermark.phase3.reserve_min=1",
+    ]
+    budgets: dict[int, float] = {}
+    result = E.embed(
+        tiny.fit,
+        tiny.root / "sized_field",
+        2,
+        8,
+        overrides=overrides,
+        decoder_path=tiny.decoder,
+        progress=False,
+        on_step=lambda step, host: budgets.setdefault(step, host["psnr_budget"]),
+    )
+    assert result.stopped_by_budget and sorted(budgets) == [0, 1, 2, 3, 4]
+    last = result.last_metrics
+    assert (last["field_steps"], last["field_scheduled"], last["phase3_steps"]) == (5, 5, 4)
+    assert result.steps == 8 + 4  # past the configured field: --resume finds the run finished
+    # Sized at step 4 to 5 steps, the ramp (35-60 % of them) has ended: the last field step is at 40 dB;
+    # step 3 was still on the configured 8 steps' ramp (20 dB until step 2.8, 40 dB at step 4.8).
+    assert budgets[4] == pytest.approx(40.0, abs=1e-3)
+    assert budgets[2] == pytest.approx(20.0, abs=1e-3) and budgets[3] == pytest.approx(22.0, abs=1e-3)
 
 
 def test_a_refit_set_kept_as_its_reads_steps_exactly_as_the_images() -> None:

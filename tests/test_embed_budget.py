@@ -46,3 +46,37 @@ def test_a_step_is_let_in_only_when_it_and_the_last_checkpoint_fit(
 def test_no_steps_no_estimate() -> None:
     assert B.expected_step_seconds([]) is None
     assert B.expected_step_seconds([3.0, 1.0, 2.0]) == 2.0
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    done=st.integers(0, 10_000),
+    left=st.floats(-100.0, 1e5),
+    step_s=st.floats(1e-3, 10.0),
+    configured=st.integers(1, 20_000),
+)
+def test_a_sized_schedule_fits_its_margin_of_the_time_and_never_outgrows_the_configured_one(
+    done: int, left: float, step_s: float, configured: int
+) -> None:
+    total = B.steps_that_fit(done, left, step_s, configured)
+    assert total >= done + 1  # the step about to run always belongs to it
+    if total > done + 1:
+        assert total <= configured
+        assert (total - done) * step_s <= B.SIZING_MARGIN * left + 1e-6
+    if configured > done and (configured - done) * step_s <= B.SIZING_MARGIN * left - step_s:
+        assert total == configured  # all the steps fit: the configured schedule
+
+
+def test_a_sizer_times_its_first_steps_then_sizes_by_the_pace_since_the_last_sizing() -> None:
+    # A clock one second on at each call; steps 11..30 timed at 2 s sizes at step 31 to 31 + 0.97 * 100 / 2;
+    # RESIZE_EVERY steps later (one clock call: 1 s for 500 steps) the schedule grows back to its length.
+    ticks = iter(range(10**6))
+    sizer = B.ScheduleSizer(1_000, lambda: 100.0, start=10, clock=lambda: float(next(ticks)))
+    assert [s for s in range(40) if sizer.times(s)] == list(range(11, 11 + B.SIZING_STEPS))
+    assert not sizer.due(B.SIZING_STEPS + 11)  # nothing timed yet
+    for _ in range(B.SIZING_STEPS):
+        sizer.record(2.0)
+    first = B.SIZING_STEPS + 11
+    assert sizer.due(first) and sizer.size(first) == first + int(B.SIZING_MARGIN * 100.0 / 2.0)
+    assert not sizer.due(first + 1) and sizer.due(first + B.RESIZE_EVERY)
+    assert sizer.size(first + B.RESIZE_EVERY) == 1_000

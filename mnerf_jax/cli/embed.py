@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     }
     if result.stopped_by_budget:
         summary["stopped_by_budget"] = True
-    for name in ("field_steps", "phase3_steps", "phase3_scheduled"):  # phase 3 ran
+    for name in ("field_steps", "field_scheduled", "phase3_steps", "phase3_scheduled"):  # phase 3 ran
         if name in last:
             summary[name] = int(last[name])
     print(f"mnerf embed: {json.dumps(summary)}")

@@ -128,9 +128,26 @@ class EmbedLoop:
         self._null = keys_lib.null_message(self.keys.messages)
         self._index, self._owner = jnp.asarray(self.layout.index), jnp.asarray(self.layout.owner)
         self._step_cfg = step_config(cfg)
-        self._total_steps = total_steps(cfg)
-        self._total = jnp.asarray(self._total_steps, jnp.int32)
+        self._horizon = total_steps(cfg)  # the quality ramp's length (field_sizer may shorten it)
+        self._total = jnp.asarray(total_steps(cfg), jnp.int32)  # the rates decay over the configured steps
         self._ids_per_step = watermark.ids_per_step_of(cfg, self.keys.num_ids)
+
+    def field_sizer(self, start: int) -> embed_budget.ScheduleSizer | None:
+        """With a time budget and phase 3 to follow, the sizer of the field's schedule from step ``start``
+        (phase 2's steps are timed: phase 1 renders whole images, at another pace); None otherwise. The
+        sized schedule ends the field, and the quality ramp runs over it so that the budget has tightened
+        by then; the rates keep decaying over the configured steps (sizing them too read far less:
+        docs/experiments/2026-11-26-slower-machine.md)."""
+        cfg, clock = self.config.watermark, self.clock
+        if clock is None or not clock.kept_s or not cfg.schedule.phase2_steps:
+            return None
+
+        def seconds_left() -> float:
+            return clock.seconds_left(time.perf_counter()) - clock.kept_s
+
+        return embed_budget.ScheduleSizer(
+            total_steps(cfg), seconds_left, start=max(int(cfg.schedule.phase1_steps), start)
+        )
 
     def budgets(self) -> tuple[int, int]:
         return self.policy.budgets(BUDGET_SITE, self.layout.rays, self.geometry.n_samples)
@@ -173,7 +190,7 @@ class EmbedLoop:
         if self.cache is not None:
             batch.update({k: jnp.asarray(v) for k, v in self.cache.view(view).items()})
         if uses_fidelity(cfg):  # the budget as data: its ramp (fidelity_budget_db) compiles once
-            budget = metrics_lib.psnr_to_mse(fidelity_budget_db(cfg, step, self._total_steps))
+            budget = metrics_lib.psnr_to_mse(fidelity_budget_db(cfg, step, self._horizon))
             batch["fidelity_mse"] = np.float32(budget)
         db, cb = self.budgets() if self.cache is None else (0, 0)  # a cached render marches no ray
         spec = StepSpec(
@@ -208,7 +225,8 @@ class EmbedLoop:
 
     def run(self, state: EmbedState, stop_at: int | None, started: float) -> EmbedResult:
         """Steps from ``state.step`` to the schedule's end (or ``stop_at``), or until the time budget (its
-        clock started at ``started``) has no room for another step."""
+        clock started at ``started``) has no room for another step; with phase 3 to follow, the schedule is
+        sized to the steps the budget allows (:meth:`field_sizer`)."""
         cfg = self.config.watermark
         t0 = time.perf_counter()
         if cfg.time_budget.minutes > 0:
@@ -217,6 +235,8 @@ class EmbedLoop:
         total = total_steps(cfg)
         stop = total if stop_at is None else min(int(stop_at), total)
         start = step = int(state.step)
+        sizer = self.field_sizer(start)
+        self._horizon = total
         every = max(int(cfg.checkpoint_every), 1)
         bar = tqdm(
             total=stop,
@@ -233,6 +253,13 @@ class EmbedLoop:
         log = ScalarLog(self.out)
         try:
             while step < stop:
+                if sizer is not None and sizer.due(step):
+                    self._horizon = sizer.size(step)
+                    bar.total = min(stop, self._horizon)
+                    bar.refresh()
+                if step >= self._horizon:  # the sized schedule has ended
+                    stopped_by_budget = True
+                    break
                 tick = time.perf_counter()
                 if self.clock is not None and not self.clock.room_for_a_step(tick):
                     stopped_by_budget = True
@@ -243,6 +270,8 @@ class EmbedLoop:
                     continue
                 if self.clock is not None:
                     self.clock.record_step(time.perf_counter() - tick)
+                if sizer is not None and sizer.times(step):
+                    sizer.record(time.perf_counter() - tick)
                 new_state, host = out
                 if not all(np.isfinite(v) for v in host.values()):
                     raise EmbedError(
@@ -278,7 +307,7 @@ class EmbedLoop:
             )
             tqdm.write(
                 f"embed: the time budget ({cfg.time_budget.minutes:g} min) ends the field at step {step} "
-                f"of {total}; {after}"
+                f"of {total} (its schedule sized to {self._horizon}); {after}"
             )
         saved_there = step % every == 0 or step == cfg.schedule.phase1_steps
         if (stopped_by_budget and not saved_there) or not (self.out / DECODER_FILE).is_file():
@@ -288,7 +317,7 @@ class EmbedLoop:
             keys=self.keys,
             steps=int(state.step),
             seconds=time.perf_counter() - t0,
-            last_metrics=last,
+            last_metrics={**last, "field_scheduled": float(self._horizon)} if sizer is not None else last,
             redone_steps=redone,
             stopped_by_budget=stopped_by_budget,
             state=state,

@@ -39,6 +39,7 @@ from mnerf_jax.reader import keys as keys_lib
 from mnerf_jax.reader.train import cover_images
 from mnerf_jax.tensorf import run as runs
 from mnerf_jax.watermark import run as wm_run
+from mnerf_jax.watermark import time_budget as embed_budget
 
 PyTree = Any
 # A batch holds phase3_batch renders and a quarter as many unwatermarked images (8 per 32, as in the sweep of
@@ -336,16 +337,6 @@ def refit_optimizer(cfg: WatermarkConfig) -> optax.GradientTransformation:
     return optax.scale_by_adam()
 
 
-# Decoder steps timed one by one (after the first, which compiles) before phase 3's schedule is sized to the
-# time left, by their median (robust to one that compiles again or meets a busy moment).
-SIZING_STEPS = 20
-# The share of the minutes left the sized schedule plans for (steps vary; the budget ends an overrun).
-SIZING_MARGIN = 0.97
-# Steps between re-sizings, each by the mean step of the steps since the last: a busy moment at the start
-# shortens the schedule only until the steps run at their pace again (up to ``phase3.steps``).
-RESIZE_EVERY = 500
-
-
 def make_refit_step(
     cfg: WatermarkConfig, decoder_state: PyTree
 ) -> Callable[[PyTree, Any, jax.Array, RefitSet, Any, Any], tuple[PyTree, Any, jax.Array]]:
@@ -436,12 +427,11 @@ def refit_decoder(
     """Up to ``phase3.steps`` decoder steps on ``data`` from ``decoder_vars`` (``{"params", "batch_stats",
     ...}``; only ``params`` change). ``keep_going()`` is asked before each step (the time budget).
 
-    ``seconds_left()`` (the time budget's, when it has one): after :data:`SIZING_STEPS` timed steps the
-    schedule is shortened to the steps that fit in :data:`SIZING_MARGIN` of it, so that its warm-up and
-    cosine decay end inside the budget, not cut off at a high rate where steps run slower; every
-    :data:`RESIZE_EVERY` steps it is sized again (never beyond ``phase3.steps``) by the mean step since the
-    last sizing (``clock``, seconds). Without it, or when all the steps fit, the schedule is ``phase3.steps``
-    long and the run deterministic in ``watermark.seed``. Returns the new variables and ``{"steps",
+    ``seconds_left()`` (the time budget's, when it has one): the schedule is sized to the steps that fit
+    in it (``embed_budget.ScheduleSizer``, timed by ``clock``, seconds), so that its warm-up and cosine
+    decay end inside the budget, not cut off at a high rate where steps run slower. Without it, or when
+    all the steps fit, the schedule is ``phase3.steps`` long and the run deterministic in
+    ``watermark.seed``. Returns the new variables and ``{"steps",
     "scheduled", "loss"}`` (steps taken, the schedule's length, the last step's loss).
     """
     step = make_refit_step(cfg, decoder_vars)
@@ -453,39 +443,28 @@ def refit_decoder(
     opt_state = jax.device_put(refit_optimizer(cfg).init(params), device)
     key = jax.random.fold_in(jax.random.key(int(cfg.seed)), 0xDEC3)
     loss = jnp.full((), jnp.nan)
-    configured = total = int(cfg.phase3.steps)
+    total = int(cfg.phase3.steps)
+    sizer = None if seconds_left is None else embed_budget.ScheduleSizer(total, seconds_left, clock=clock)
     done = 0
-    timed: list[float] = []
-    last_sized = (0, 0.0)  # (step, clock) of the last sizing
     bar = tqdm(
         total=total, disable=not progress, desc="embed phase 3 (decoder)", unit="step", dynamic_ncols=True
     )
-
-    def size(step_s: float) -> None:
-        nonlocal total, last_sized
-        fits = done + int(SIZING_MARGIN * max(seconds_left(), 0.0) / max(step_s, 1e-9))
-        total = max(min(configured, fits), done + 1)
-        last_sized = (done, clock())
-        bar.total = total
-        bar.refresh()
-
     try:
         while done < total:
             if not keep_going():
                 break
-            if seconds_left is not None and done == SIZING_STEPS + 1:  # steps 1..SIZING_STEPS timed
-                size(float(np.median(timed)))
-            elif seconds_left is not None and done > SIZING_STEPS and done - last_sized[0] == RESIZE_EVERY:
-                jax.block_until_ready(loss)
-                size((clock() - last_sized[1]) / RESIZE_EVERY)
-            timing = seconds_left is not None and 1 <= done <= SIZING_STEPS  # the first compiles: not timed
+            if sizer is not None and sizer.due(done):
+                jax.block_until_ready(loss)  # the steps dispatched so far have run
+                total = bar.total = sizer.size(done)
+                bar.refresh()
+            timing = sizer is not None and sizer.times(done)
             tick = clock() if timing else 0.0
             params, opt_state, loss = step(
                 params, opt_state, jax.random.fold_in(key, done), arrays, jnp.int32(done), jnp.int32(total)
             )
-            if timing:
+            if sizer is not None and timing:
                 jax.block_until_ready(loss)
-                timed.append(clock() - tick)
+                sizer.record(clock() - tick)
             done += 1
             if done % 25 == 0:  # reading the loss waits for the step: not every step
                 bar.set_postfix(loss=f"{float(loss):.4f}")
