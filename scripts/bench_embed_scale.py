@@ -355,9 +355,8 @@ def project(row: dict[str, Any], cfg: Any, seen: dict[str, Any], views: int) -> 
         now = (row["startup_s"] or 0.0) + (row["compile_s"] or 0.0)
         done, horizon = 0, len(field)
         for step_s in field:
-            if (
-                limit and kept and p2 and done == p1 + clock_lib.SIZING_STEPS + 1
-            ):  # the field's schedule sized
+            sizing = limit and kept and p2 and done == p1 + clock_lib.SIZING_STEPS + 1
+            if sizing:  # the field's schedule sized to the steps that fit, as the loop sizes it
                 left = limit - now - kept - save_s - clock_lib.RESERVE_S
                 horizon = clock_lib.steps_that_fit(done, left, m2, len(field))
             if done >= horizon:

@@ -6,14 +6,13 @@ largest view's counts, so a step count fixed in advance either overruns the time
 With a budget, the loop runs the configured schedule and, before each step, stops when that step and the last
 checkpoint would no longer end inside the budget, judging a step's cost by the steps just run. Without
 phase 3 the schedule is not resized: a field the budget stops after N steps is exactly the first N steps of
-the unbudgeted run (``--steps N`` repeats it), and ``--resume`` continues it. With phase 3 the field's
-schedule is sized to the steps its share of the budget allows (:class:`ScheduleSizer`, ``field_scheduled`` in
-the run's metrics) and the quality budget's ramp is laid over them, so that it has tightened when the field
-ends; the learning rates still decay over the configured length. Where every step fits, nothing changes. With
-phase 3 (``watermark.phase3.steps``) the loop keeps ``phase3.reserve_min``
-of the budget for it and phase 3 runs on whatever field the budget left, its own schedule sized to the time
-left (``phase3.refit_decoder``): where steps run slower the budget then ends with a shorter field and a
-shorter phase 3, not without phase 3.
+the unbudgeted run (``--steps N`` repeats it), and ``--resume`` continues it. With phase 3
+(``watermark.phase3.steps``) the loop keeps ``phase3.reserve_min`` of the budget for it, and sizes the field's
+schedule to the steps its share allows (:class:`ScheduleSizer`, ``field_scheduled`` in the run's metrics):
+the quality budget's ramp is laid over them, so that it has tightened when the field ends, while the
+learning rates still decay over the configured length (where every step fits, nothing changes). Phase 3
+runs on whatever field the budget left, its own schedule sized to the time left (``phase3.refit_decoder``):
+where steps run slower the budget then ends with a shorter field and a shorter phase 3, not without phase 3.
 """
 
 from __future__ import annotations
@@ -101,12 +100,8 @@ class ScheduleSizer:
     seconds_left: Callable[[], float]
     start: int = 0
     clock: Callable[[], float] = time.perf_counter
-    total: int = dataclasses.field(init=False)
     timed: list[float] = dataclasses.field(default_factory=list, init=False)
     last_sized: tuple[int, float] | None = dataclasses.field(default=None, init=False)
-
-    def __post_init__(self) -> None:
-        self.total = int(self.configured)
 
     def times(self, step: int) -> bool:
         """True for the steps whose times the first sizing uses."""
@@ -128,6 +123,5 @@ class ScheduleSizer:
             step_s = float(statistics.median(self.timed))
         else:
             step_s = (now - self.last_sized[1]) / max(step - self.last_sized[0], 1)
-        self.total = steps_that_fit(step, self.seconds_left(), step_s, self.configured)
         self.last_sized = (step, now)
-        return self.total
+        return steps_that_fit(step, self.seconds_left(), step_s, self.configured)
