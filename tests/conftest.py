@@ -213,6 +213,14 @@ TINY_EMBED = [
     # ... and the decoder rate and clean term that rate was chosen with (the defaults are 1e-3, 0.3).
     "watermark.optim.lr_decoder=1e-4",
     "watermark.losses.lambda_clean=0",
+    # ... and none of the preset's recipe for the demo's invisibility: a budget ramp, the per-ID weighting,
+    # phase 2 without attacks, phase 3 and a time budget (tests/test_decoder_refit.py turns phase 3 on).
+    "watermark.fidelity.psnr_start=0",
+    "watermark.losses.id_loss_power=0",
+    "watermark.augment.prob=0.75",
+    "watermark.phase3.steps=0",
+    "watermark.phase3.negative_strength=medium",
+    "watermark.time_budget.minutes=0",
     # Three of the 14 augmentations, filters that barely move a 32-px view's LL2: phase 2's step compiles
     # faster and the watermark still reads (photometric subsets such as brightness, contrast, saturation
     # leave it at chance: this decoder's whitening gain makes any colour change a large one). test_augment

@@ -72,7 +72,7 @@ def test_bench_embed_scale_reports_every_figure(tiny, tmp_path: Path, capsys) ->
     for row in rows:
         assert set(row) == set(scale.ROW_KEYS)
         assert row["cache_source"] and row["cache_mb"] > 0 and row["choice"]["preset"] == "procedural"
-        assert row["schedule"] == [0, 1600] and row["phase3_schedule"] == 40 and row["phase3_views"] == 6
+        assert row["schedule"] == [0, 3200] and row["phase3_schedule"] == 40 and row["phase3_views"] == 6
         for key in ("startup_s", "cache_s", "field_step_s", "phase3_step_s", "projected_s", "peak_rss_mb"):
             assert row[key] > 0, key
         assert row["field_peak_rss_mb"] <= row["peak_rss_mb"]

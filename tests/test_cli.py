@@ -7,8 +7,11 @@ from pathlib import Path
 
 import pytest
 from conftest import TINY_SCHEDULE as TINY
+from hypothesis import given
+from hypothesis import strategies as st
 
 from mnerf_jax import cli
+from mnerf_jax.cli import demo
 from mnerf_jax.core import rundir
 
 # The schedule of tests/test_train.py (same static shapes: its compilations are reused here).
@@ -105,6 +108,36 @@ def test_missing_data_and_missing_checkpoint_are_clear_errors(tmp_path, mnerf):
         assert code == 2 and "no checkpoint" in err, command
     code, _, err = mnerf("evaluate", "--run", tmp_path / "missing")
     assert code == 2 and "no such directory" in err
+
+
+@given(
+    minutes=st.floats(0.5, 30.0),
+    reserve=st.floats(0.0, 10.0),
+    elapsed=st.floats(0.0, 1200.0, allow_nan=False),
+)
+def test_the_demo_gives_its_embedding_what_is_left_of_its_ten_minutes(
+    minutes: float, reserve: float, elapsed: float
+) -> None:
+    sets = dict(item.split("=") for item in demo.embedding_budget(minutes, reserve, elapsed))
+    left = (demo.DEMO_MINUTES * 60 - elapsed - demo.FINISH_ALLOWANCE_S) / 60
+    if left >= minutes:
+        assert not sets  # the preset's budget fits: unchanged
+        return
+    budget = float(sets["watermark.time_budget.minutes"])
+    assert min(minutes, demo.MIN_EMBED_MINUTES) - 1e-3 <= budget <= minutes + 1e-3
+    if budget > demo.MIN_EMBED_MINUTES + 1e-3:  # the whole demo then ends within its ten minutes
+        assert elapsed + budget * 60 + demo.FINISH_ALLOWANCE_S <= demo.DEMO_MINUTES * 60 + 0.1
+    # phase 3 keeps the preset's share of the budget
+    assert float(sets["watermark.phase3.reserve_min"]) == pytest.approx(reserve * budget / minutes, abs=2e-3)
+
+
+def test_the_demo_leaves_an_embedding_without_a_time_budget_alone() -> None:
+    assert demo.embedding_budget(0.0, 3.0, 590.0) == ()
+    assert demo.embedding_budget(7.0, 3.0, 60.0) == ()  # 10 - 1 - 1 minutes left: the preset's 7 fit
+    assert demo.embedding_budget(7.0, 3.0, 240.0) == (
+        "watermark.time_budget.minutes=5.000",
+        "watermark.phase3.reserve_min=2.143",
+    )
 
 
 def test_demo_into_a_folder_that_is_not_a_demos_is_refused(tmp_path, mnerf):

@@ -512,7 +512,8 @@ def test_phase_three_attacks_its_negatives_even_when_the_renders_go_untouched(mo
 
 
 def test_phase_three_attacks_its_negatives_once_a_step_when_the_run_names_one_attack(monkeypatch) -> None:
-    # Two distinct attacks cannot be drawn from one name: a run trained under JPEG alone still gets phase 3.
+    # Two distinct attacks cannot be drawn from one name: a run trained under JPEG alone still gets phase 3,
+    # at the strength phase3.negative_strength sets.
     data, variables = _two_class_set()
     seen: list[tuple[str, int]] = []
     real = augment.random_policy
@@ -522,11 +523,15 @@ def test_phase_three_attacks_its_negatives_once_a_step_when_the_run_names_one_at
         return real(key, images, strength, k, p, names)
 
     monkeypatch.setattr(augment, "random_policy", spy)
-    cfg = wm_config(phase3_steps=10, phase3_batch=8, augment_prob=0.0, augment_names=("jpeg",))
+    cfg = wm_config(
+        phase3={"steps": 10, "batch": 8, "negative_strength": "high"},
+        augment_prob=0.0,
+        augment_names=("jpeg",),
+    )
     step = decoder_refit.make_refit_step(cfg, variables)
     opt_state = decoder_refit.refit_optimizer(cfg).init(variables["params"])
     jax.eval_shape(step, variables["params"], opt_state, jax.random.key(0), data, 0, 10)
-    assert seen == [("medium", 1)]
+    assert seen == [("high", 1)]
 
 
 def test_the_generic_negatives_are_photo_crops_and_textures_of_the_renders_shape() -> None:

@@ -444,8 +444,8 @@ def test_embedding_config_records_the_schedule_it_runs(tiny: TinyRuns) -> None:
 
     source = wm_run.load_run(tiny.fit)
     wm = E.resolve_config(source, None, [], 16, 16).watermark
-    # Both phases from the procedural preset (100 + 1,600); -1 is by the number of IDs.
-    assert (wm.schedule.phase1_steps, wm.schedule.phase2_steps) == (100, 1600)
+    # Both phases from the procedural preset (100 + 3,200); -1 is by the number of IDs.
+    assert (wm.schedule.phase1_steps, wm.schedule.phase2_steps) == (100, 3200)
     wm = E.resolve_config(source, None, ["watermark.schedule.phase2_steps=-1"], 16, 16).watermark
     assert (wm.schedule.phase1_steps, wm.schedule.phase2_steps) == (100, 3200)
     sets = ["watermark.schedule.phase1_steps=-1", "watermark.schedule.phase2_steps=7"]

@@ -282,6 +282,9 @@ class Phase3Config:
     lr: float = 1e-3
     batch: int = 32  # renders per step (and a quarter as many negatives)
     lambda_clean: float = 0.3  # weight of BCE(decoder(unwatermarked image), the null word)
+    # The attacks' strength on those images each step: a faint watermark's decoder reads colour-shifted clean
+    # renders as keys unless it has seen strong shifts (docs/experiments/).
+    negative_strength: Strength = "medium"
     reserve_min: float = 0.0  # minutes of the time budget kept for phase 3
 
     def __post_init__(self) -> None:

@@ -48,9 +48,6 @@ NEGATIVES_PER_BATCH_DIVISOR = 4
 VIEW_DENSITIES = get_args(ViewDensity)  # novel_cameras' spreads of the elevation
 
 
-# The strength of the attacks phase 3's negatives go through each step (negative_attacks).
-NEGATIVE_STRENGTH = "medium"
-
 # Under a time budget, the share of the time left at phase 3's start that rendering its novel views may take
 # (the rest is the decoder's): past it no further chunk of them is rendered.
 NOVEL_VIEWS_SHARE = 0.5
@@ -85,12 +82,14 @@ class RefitSet:
 
 def negative_attacks(cfg: WatermarkConfig) -> AugmentConfig:
     """The attacks phase 3's negatives go through, whatever the run trains its renders with: two a step (one
-    when the run names one), each with probability 0.75, at :data:`NEGATIVE_STRENGTH`, from the run's
+    when the run names one), each with probability 0.75, at ``phase3.negative_strength``, from the run's
     ``augment.names`` (all 14 when empty). A verifier meets clean renders a platform re-encoded or
     colour-graded; a decoder that saw them only untouched reads such images as keys (docs/experiments/,
     false claims)."""
     per_step = min(2, len(cfg.augment.names or augment.AUGMENTATION_NAMES))  # a run may name only one
-    return AugmentConfig(strength=NEGATIVE_STRENGTH, names=cfg.augment.names, per_step=per_step, prob=0.75)
+    return AugmentConfig(
+        strength=cfg.phase3.negative_strength, names=cfg.augment.names, per_step=per_step, prob=0.75
+    )
 
 
 def keeps_reads_only(cfg: WatermarkConfig) -> bool:
