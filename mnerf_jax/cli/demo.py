@@ -37,7 +37,7 @@ WM_IDS, WM_BITS = 4, 16
 # it left, less an allowance for the watermark's evaluation and report, and never more than its preset's.
 DEMO_MINUTES = 10.0
 FINISH_ALLOWANCE_S = 60.0
-MIN_EMBED_MINUTES = 2.0  # below this the watermark would not read; a slower machine runs past the ten minutes
+MIN_EMBED_MINUTES = 2.0  # a floor for the embedding: a machine too slow for it runs past the ten minutes
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
