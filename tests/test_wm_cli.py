@@ -19,6 +19,10 @@ import pytest
 from conftest import EVALUATION_KEYS
 
 from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.data import camera_path
+from mnerf_jax.data.images import round_to_8bit
+from mnerf_jax.reader import extract as extract_lib
+from mnerf_jax.tensorf import run as tensorf_runs
 
 if TYPE_CHECKING:
     from conftest import TinyRuns
@@ -126,6 +130,30 @@ def test_evaluate_watermarked_run(tiny: TinyRuns, tmp_path: Path, mnerf) -> None
     assert "bit accuracy, float render (mean over IDs)" in out and "IDs × bits" in out
     assert f"{saved['psnr']:.2f}" in out and str(wm / "eval-test.json") in out
     assert len(list((wm / "eval-test").glob("id*/*.png"))) == 2 * 2
+
+
+def test_evaluate_along_the_render_path(tiny: TinyRuns, tmp_path: Path, mnerf) -> None:
+    """``--split path``: novel views along the render path, read for every ID; they have no ground truth, so
+    quality is against the clean model's renders, which are those of ``mnerf render --split path``."""
+    code, _, err = mnerf("evaluate", "--run", tiny.fit, "--split", "path", "--quiet")
+    assert code == 2
+    _one_error_line(err, "no ground truth")
+    wm = tmp_path / "wm"
+    shutil.copytree(tiny.wm, wm, ignore=shutil.ignore_patterns("eval-*"))
+    code, out, err = mnerf("evaluate", "--run", wm, "--split", "path", "--views", "3", "--quiet")
+    assert code == 0, err
+    saved = json.loads((wm / "eval-path.json").read_text())
+    assert saved["split"] == "path" and saved["views"] == 3 and saved["num_ids"] == 2
+    assert saved["view_names"] == ["frame_0000", "frame_0001", "frame_0002"]
+    assert saved["psnr"] is None and saved["clean_psnr"] is None
+    assert all(row["psnr"] is None for row in saved["per_id"])
+    assert saved["psnr_clean_model"] > 0 and 0.0 <= saved["bit_accuracy_min"] <= 1.0
+    assert len(list((wm / "eval-path").glob("id*/*.png"))) == 2 * 3 and str(wm / "eval-path.json") in out
+    clean = tensorf_runs.load_tensorf_run(tiny.fit)
+    cameras = camera_path(clean.load_scene(splits=("train",)), 3)
+    expected = round_to_8bit(np.asarray(tensorf_runs.render_views(clean, cameras, [1])[0]))
+    saved_clean = extract_lib.load_image(wm / "eval-path" / "clean" / "frame_0001.png")
+    np.testing.assert_array_equal(saved_clean, expected)
 
 
 def _binomial_tail(k: int, bits: int) -> float:

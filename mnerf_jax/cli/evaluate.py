@@ -13,7 +13,8 @@ import time
 from pathlib import Path
 
 from mnerf_jax.core import rundir
-from mnerf_jax.data import view_indices
+from mnerf_jax.core.errors import MnerfError
+from mnerf_jax.data import PATH_SPLIT, view_indices
 from mnerf_jax.watermark import run as wm_run
 
 NAME = "evaluate"
@@ -27,12 +28,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--run", type=Path, required=True, help="run directory written by mnerf fit or mnerf embed"
     )
-    parser.add_argument("--split", default="test", help="test | val | train (default test)")
+    parser.add_argument(
+        "--split",
+        default="test",
+        help="test | val | train, or path for a watermarked run: --views N views (default 30) along the "
+        "render path, read and compared with the clean model's renders (default test)",
+    )
     parser.add_argument(
         "--data", type=Path, help="scene directory holding the split (default: the run's data)"
     )
     parser.add_argument(
-        "--views", type=int, default=0, metavar="N", help="evaluate N evenly spread views (default 0: all)"
+        "--views",
+        type=int,
+        default=0,
+        metavar="N",
+        help="evaluate N evenly spread views (default 0: all)",
     )
     parser.add_argument(
         "--lpips", choices=("alex", "vgg"), default="alex", help="LPIPS network (default alex)"
@@ -58,6 +68,11 @@ def run(args: argparse.Namespace) -> int:
     if marker is not None and marker.get("kind") == rundir.WATERMARK_KIND:
         return evaluate_watermarked(args)
     loaded = wm_run.load_run(args.run)
+    if args.split == PATH_SPLIT:
+        raise MnerfError(
+            f"--split {PATH_SPLIT} has no ground truth: it evaluates watermarked runs only "
+            f"(mnerf render --split {PATH_SPLIT} renders a fitted run's path)"
+        )
     split = loaded.load_scene(args.data, splits=(args.split,), max_views=args.views).split(args.split)
     n = len(view_indices(len(split), args.views))
     bar = None

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from mnerf_jax.core import rundir
-from mnerf_jax.data import view_indices
+from mnerf_jax.data import PATH_SPLIT, camera_path, view_indices
 from mnerf_jax.watermark import run as wm_run
 
 NAME = "render"
@@ -102,11 +102,10 @@ def render_to(
     """Render ``split_name`` (or ``path``) of a loaded run into ``out``; returns what was written."""
     import imageio.v3 as iio
 
-    from mnerf_jax.data import camera_path
     from mnerf_jax.data.images import to_uint8
     from mnerf_jax.tensorf import run as runs
 
-    if split_name == "path":
+    if split_name == PATH_SPLIT:
         scene = run.load_scene(data, splits=("train",))
         cameras = camera_path(scene, frames)
         indices = list(range(len(cameras)))

@@ -18,7 +18,7 @@ from mnerf_jax.data.rays import (
     undistort,
     world_rays,
 )
-from mnerf_jax.data.trajectory import camera_path
+from mnerf_jax.data.trajectory import PATH_SPLIT, camera_path
 from mnerf_jax.data.types import (
     Cameras,
     DataError,
@@ -40,6 +40,7 @@ __all__ = [
     "SceneSplit",
     "SceneTransform",
     "all_rays",
+    "PATH_SPLIT",
     "camera_path",
     "camera_rays",
     "detect_dataset",

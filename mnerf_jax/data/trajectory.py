@@ -115,6 +115,10 @@ def spiral_poses_at(c2w: np.ndarray, depth_bounds: tuple[float, float], angles: 
     return np.stack(poses) if poses else np.zeros((0, 3, 4))
 
 
+# The camera path's name among a scene's splits (``--split path``): novel views, with no ground truth.
+PATH_SPLIT = "path"
+
+
 def camera_path(scene: Scene, n_frames: int = 120) -> Cameras:
     """Cameras along a smooth closed path for a video, with the intrinsics of the first training
     camera (no distortion): a spiral for forward-facing scenes, else an orbit."""

@@ -17,7 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from mnerf_jax.core import rundir
-from mnerf_jax.data import view_indices
+from mnerf_jax.data import PATH_SPLIT, camera_path, view_indices
 from mnerf_jax.data.images import round_to_8bit, to_uint8
 from mnerf_jax.imaging import metrics
 from mnerf_jax.reader import extract, geometry_search, read_window
@@ -35,6 +35,9 @@ from mnerf_jax.watermark import run as wm_run
 
 # The clean model's renders of the evaluated views, beside each ID's: WMRUN/eval-<split>/clean/<view>.png.
 CLEAN_FOLDER = "clean"
+# The render path's views evaluated when none are asked for (issue 52's spiral protocol): a spiral for
+# forward-facing scenes, else an orbit; they have no ground truth, so quality is against the clean model only.
+PATH_VIEWS = 30
 
 # ------------------------------------------------------------------------------------------- evaluation
 
@@ -70,10 +73,29 @@ def _save_and_reload_png(path: Path, image: np.ndarray) -> np.ndarray:
     return extract.load_image(path)
 
 
-def _quality(preds: np.ndarray, targets: np.ndarray, lpips_net: str) -> dict[str, float]:
+def _quality(preds: np.ndarray, targets: np.ndarray | None, lpips_net: str) -> dict[str, float | None]:
+    if targets is None:  # no ground truth (the render path)
+        return dict.fromkeys(("psnr", "ssim", "lpips"))
 
     out = metrics.image_metrics(preds, targets, lpips_net=lpips_net)
     return {k: out[k] for k in ("psnr", "ssim", "lpips")}
+
+
+def evaluation_views(
+    run: Any, split: str, data_path: str | Path | None, max_views: int | None
+) -> tuple[Any, list[int], list[str], np.ndarray | None]:
+    """The cameras, evaluated view indices, view names and ground truth ``[V, H, W, 3]`` of ``split`` (None
+    for :data:`PATH_SPLIT`: ``max_views`` views, default :data:`PATH_VIEWS`, evenly along the render path that
+    ``mnerf render --split path`` draws from the training cameras)."""
+    if split == PATH_SPLIT:
+        scene = run.load_scene(data_path, splits=("train",))
+        cameras = camera_path(scene, max_views or PATH_VIEWS)
+        indices = list(range(len(cameras)))
+        return cameras, indices, [f"frame_{i:04d}" for i in indices], None
+    scene_split = run.load_scene(data_path, splits=(split,), max_views=max_views).split(split)
+    indices = view_indices(len(scene_split), max_views)
+    names = [scene_split.names[i] for i in indices]
+    return scene_split.cameras, indices, names, np.asarray(scene_split.images[indices], np.float32)
 
 
 def evaluate_watermarked_run(
@@ -91,6 +113,8 @@ def evaluate_watermarked_run(
     read_jitter: int | None = None,
 ) -> dict[str, Any]:
     """Evaluate a watermarked run on ``split``; writes ``run_dir/eval-<split>.json`` and returns its dict.
+    ``split`` :data:`PATH_SPLIT` evaluates novel views along the render path, which have no ground truth (the
+    figures against it are None).
 
     For every evaluated view and every ID (up to ``wm_run.IDS_PER_RENDER`` IDs from one geometry pass): render
     (float, unclamped by nothing but the renderer's [0, 1]),
@@ -123,10 +147,7 @@ def evaluate_watermarked_run(
     wm = with_read_jitter(run.config.watermark, read_jitter)
     rule = decision.decision_rule(run_dir, wm.reading, decoder.fingerprint, threshold, test)
     thr, test = rule.threshold, rule.test
-    scene_split = run.load_scene(data_path, splits=(split,), max_views=max_views).split(split)
-    indices = view_indices(len(scene_split), max_views)
-    names = [scene_split.names[i] for i in indices]
-    gt = np.asarray(scene_split.images[indices], np.float32)
+    cameras, indices, names, gt = evaluation_views(run, split, data_path, max_views)
     n_ids, n_views = keys.num_ids, len(indices)
 
     bar = None
@@ -138,8 +159,8 @@ def evaluate_watermarked_run(
         source = clean_model(run)
         clean = None
         if source is not None:
-            clean = np.stack(runs.render_views(source, scene_split.cameras, indices, on_view=tick))
-        renders = wm_run.render_every_id(run, scene_split.cameras, indices, on_view=tick)
+            clean = np.stack(runs.render_views(source, cameras, indices, on_view=tick))
+        renders = wm_run.render_every_id(run, cameras, indices, on_view=tick)
     finally:
         if bar is not None:
             bar.close()
@@ -191,7 +212,7 @@ def evaluate_watermarked_run(
     ident_png = identify_logits(np.concatenate(decoded_png), keys.messages, thr, test)
     ident_hard = identify(logits_to_bits(decoded_all), keys.messages, thr)
     stacked = np.concatenate(all_renders)
-    quality = _quality(stacked, np.tile(gt, (n_ids, 1, 1, 1)), lpips_net)
+    quality = _quality(stacked, None if gt is None else np.tile(gt, (n_ids, 1, 1, 1)), lpips_net)
     accs = [row["bit_accuracy"] for row in per_id]
     result: dict[str, Any] = {
         "split": split,
