@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from mnerf_jax.core import rundir, xla_cpu
+from mnerf_jax.data import PATH_SPLIT
 from mnerf_jax.watermark import run as wm_run
 
 NAME = "demo"
@@ -143,7 +144,7 @@ def step_render_orbit(ctx: DemoContext) -> None:
 
     run = _loaded(ctx)
     result = render_to(
-        run, "path", ctx.out / "orbit", frames=ctx.frames, fps=24, overwrite=True, quiet=ctx.quiet
+        run, PATH_SPLIT, ctx.out / "orbit", frames=ctx.frames, fps=24, overwrite=True, quiet=ctx.quiet
     )
     ctx.row("orbit", f"{result['views']} frames, {ctx.out / 'orbit' / result['video']}")
 

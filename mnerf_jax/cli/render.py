@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from mnerf_jax.core import rundir
-from mnerf_jax.data import PATH_SPLIT, camera_path, view_indices
+from mnerf_jax.data import PATH_SPLIT
 from mnerf_jax.watermark import run as wm_run
 
 NAME = "render"
@@ -105,19 +105,11 @@ def render_to(
     from mnerf_jax.data.images import to_uint8
     from mnerf_jax.tensorf import run as runs
 
-    if split_name == PATH_SPLIT:
-        scene = run.load_scene(data, splits=("train",))
-        cameras = camera_path(scene, frames)
-        indices = list(range(len(cameras)))
-        names = [f"frame_{i:04d}.png" for i in indices]
-        video = f"path.{video_format}"
-        targets = [*names, video]
-    else:
-        split = run.load_scene(data, splits=(split_name,), max_views=views).split(split_name)
-        cameras = split.cameras
-        indices = view_indices(len(split), views)
-        names = [f"{split.names[i]}.png" for i in indices]
-        video, targets = None, names
+    on_path = split_name == PATH_SPLIT
+    cameras, indices, stems, _ = run.split_views(split_name, data, frames if on_path else views)
+    names = [f"{stem}.png" for stem in stems]
+    video = f"path.{video_format}" if on_path else None
+    targets = [*names, video] if video else names
     check_targets(out, targets, overwrite)
     out.mkdir(parents=True, exist_ok=True)
 

@@ -17,7 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from mnerf_jax.core import rundir
-from mnerf_jax.data import PATH_SPLIT, camera_path, view_indices
+from mnerf_jax.data import PATH_SPLIT
 from mnerf_jax.data.images import round_to_8bit, to_uint8
 from mnerf_jax.imaging import metrics
 from mnerf_jax.reader import extract, geometry_search, read_window
@@ -81,23 +81,6 @@ def _quality(preds: np.ndarray, targets: np.ndarray | None, lpips_net: str) -> d
     return {k: out[k] for k in ("psnr", "ssim", "lpips")}
 
 
-def evaluation_views(
-    run: Any, split: str, data_path: str | Path | None, max_views: int | None
-) -> tuple[Any, list[int], list[str], np.ndarray | None]:
-    """The cameras, evaluated view indices, view names and ground truth ``[V, H, W, 3]`` of ``split`` (None
-    for :data:`PATH_SPLIT`: ``max_views`` views, default :data:`PATH_VIEWS`, evenly along the render path that
-    ``mnerf render --split path`` draws from the training cameras)."""
-    if split == PATH_SPLIT:
-        scene = run.load_scene(data_path, splits=("train",))
-        cameras = camera_path(scene, max_views or PATH_VIEWS)
-        indices = list(range(len(cameras)))
-        return cameras, indices, [f"frame_{i:04d}" for i in indices], None
-    scene_split = run.load_scene(data_path, splits=(split,), max_views=max_views).split(split)
-    indices = view_indices(len(scene_split), max_views)
-    names = [scene_split.names[i] for i in indices]
-    return scene_split.cameras, indices, names, np.asarray(scene_split.images[indices], np.float32)
-
-
 def evaluate_watermarked_run(
     run_dir: str | Path,
     split: str = "test",
@@ -147,7 +130,8 @@ def evaluate_watermarked_run(
     wm = with_read_jitter(run.config.watermark, read_jitter)
     rule = decision.decision_rule(run_dir, wm.reading, decoder.fingerprint, threshold, test)
     thr, test = rule.threshold, rule.test
-    cameras, indices, names, gt = evaluation_views(run, split, data_path, max_views)
+    path_views = PATH_VIEWS if split == PATH_SPLIT and not max_views else max_views
+    cameras, indices, names, gt = run.split_views(split, data_path, path_views)
     n_ids, n_views = keys.num_ids, len(indices)
 
     bar = None

@@ -18,7 +18,7 @@ import numpy as np
 from mnerf_jax.core.checkpoint import CheckpointStore
 from mnerf_jax.core.config import Config
 from mnerf_jax.core.rundir import TENSORF_KIND, RunError, read_run_config, require_marker
-from mnerf_jax.data import camera_rays, load_scene, view_indices
+from mnerf_jax.data import PATH_SPLIT, camera_path, camera_rays, load_scene, view_indices
 from mnerf_jax.imaging import metrics
 from mnerf_jax.tensorf import budgets, chunked, render
 from mnerf_jax.tensorf.fit import checkpoint as fit_checkpoint
@@ -76,6 +76,21 @@ class LoadedRun:
         return load_scene(
             path, self.config.data, self.config.render, tuple(splits), max_views=max_views or None
         )
+
+    def split_views(
+        self, split: str, data: str | Path | None = None, max_views: int | None = None
+    ) -> tuple[Any, list[int], list[str], np.ndarray | None]:
+        """The cameras, view indices, view names and ground truth ``[V, H, W, 3]`` float32 of ``split``'s
+        ``max_views`` evenly spread views (0 or None: all); for ``data.PATH_SPLIT``, ``max_views`` frames
+        along ``data.camera_path`` of the training cameras, named ``frame_NNNN``, with no ground truth."""
+        if split == PATH_SPLIT:
+            cameras = camera_path(self.load_scene(data, splits=("train",)), max_views or 0)
+            indices = list(range(len(cameras)))
+            return cameras, indices, [f"frame_{i:04d}" for i in indices], None
+        scene_split = self.load_scene(data, splits=(split,), max_views=max_views).split(split)
+        indices = view_indices(len(scene_split), max_views or None)
+        names = [scene_split.names[i] for i in indices]
+        return scene_split.cameras, indices, names, np.asarray(scene_split.images[indices], np.float32)
 
 
 def load_tensorf_run(run_dir: str | Path, step: int | None = None) -> LoadedRun:
