@@ -5,9 +5,11 @@ never trained on) carrying held-out messages, every one at ≥ the recipe's targ
 decoder's training record says otherwise, or ``--psnr``):
 - **informed**: images embedded by following the decoder's gradient for 1 and 10 iterations (how a radiance
   field carries the watermark), read with no attack and under the Low policy (``--draws`` random draws);
-- **encoder**: the HiDDeN encoder's images, when ``--encoder FILE`` (a run's ``encoder.npz``) is given;
-- ``--read-side S``: the informed and clean reads see each image downscaled to at most S pixels a side, as
-  ``watermark.reading.max_side`` reads renders;
+- **encoder**: the HiDDeN encoder's images: ``--encoder FILE`` (a run's ``encoder.npz``), or the encoder
+  shipped with a ``--bits`` decoder when the package has one;
+- ``--read-side S``: every read sees each image downscaled to at most S pixels a side, as
+  ``watermark.reading.max_side`` reads renders, and the encoder writes for that read (its pattern carried to
+  the image by the adjoint of the downscale, as Video Seal and Watermark Anything upsample their residual);
 - **clean**: the share of 1 bits on the clean images, and the largest and mean per-bit bias ``|P[1] − ½|``
   (a decoder whose clean reads are fair keeps these near 0: the decision's p-values assume it).
 
@@ -102,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
         path = decoder_io.shipped_decoder_path(args.bits) if args.bits is not None else args.decoder
         loaded = decoder_io.load_decoder(path, expect_bits=args.bits)
         enc_vars = None
+        if args.encoder is None and args.bits is not None:
+            args.encoder = decoder_io.shipped_encoder_path(args.bits)
         if args.encoder is not None:
             enc_vars, cfg = hidden_encoder.load_encoder(args.encoder)
             if cfg.bits != loaded.bits:

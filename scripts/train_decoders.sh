@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
-# Train the two shipped HiDDeN decoders (16 and 48 bits) and copy them, with their check batches, into the
-# package. Usage: scripts/train_decoders.sh [OUT_DIR] [extra train-decoder flags, e.g. --images ~/coco/train2014]
-# A killed run continues where it stopped when the script is run again (the runs are resumed).
-# Each decoder then gets a wider, deeper HiDDeN encoder refitted for it: for 16 bits the decoder is copied
-# unchanged (docs/decoders.md, "The encoder refit"); for 48 bits the decoder learns too once the encoder
+# Train the shipped HiDDeN decoders and copy them, with their check batches and encoders, into the package.
+# Usage: [BITS="8 32"] scripts/train_decoders.sh [OUT_DIR] [extra train-decoder flags, e.g. --images DIR]
+# BITS names the message lengths to (re)train, all four shipped ones by default (times: docs/decoders.md).
+# A killed run continues where it stopped when the script is run again (the runs resume).
+# Each decoder then gets a wider, deeper HiDDeN encoder refitted for it: up to 16 bits the decoder is copied
+# unchanged (docs/decoders.md, "The encoder refit"); from 32 bits the decoder learns too once the encoder
 # writes for it, over 12,000 steps (docs/decoders.md, "The joint refit").
 set -euo pipefail
 out="${1:-decoder-runs}"
@@ -11,14 +12,14 @@ shift || true
 assets="$(dirname "$0")/../mnerf_jax/assets/decoders"
 mkdir -p "$out" "$assets"
 resume_flag() { if [[ -f "$1/checkpoint.msgpack" ]]; then echo --resume; fi; }
-for bits in 16 48; do
+for bits in ${BITS:-8 16 32 48}; do
   run="$out/l$bits"
   # shellcheck disable=SC2046
   mnerf train-decoder --bits "$bits" --out "$run" --informed-steps 4000 --steps 0 --finetune-steps 5000 \
     $(resume_flag "$run") "$@"
   refit="$out/l${bits}_refit"
   refit_steps=(--finetune-steps 5000)
-  if [[ "$bits" == 48 ]]; then
+  if ((bits >= 32)); then
     refit_steps=(--finetune-steps 12000 --finetune-decoder-lr 1e-4 --finetune-decoder-start 0.15)
   fi
   # shellcheck disable=SC2046
@@ -27,4 +28,5 @@ for bits in 16 48; do
   run="$refit"
   cp "$run/decoder.npz" "$assets/hidden_l$bits.npz"
   cp "$run/check.npz" "$assets/hidden_l${bits}_check.npz"
+  cp "$run/encoder.npz" "$assets/hidden_l${bits}_encoder.npz"
 done

@@ -14,7 +14,7 @@ import pytest
 
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.reader import decoder as dec
-from mnerf_jax.reader import decoder_io, dwt
+from mnerf_jax.reader import decoder_io, dwt, read_window
 from mnerf_jax.reader.train import checkpoint as decoder_checkpoint
 from mnerf_jax.reader.train import hidden_encoder, informed, recipe, stages
 from mnerf_jax.reader.train import steps as decoder_steps
@@ -525,6 +525,34 @@ def test_encoder_respects_psnr() -> None:
     assert float(jnp.min(-10 * jnp.log10(mse))) >= 35.5 - 1e-3
     assert stages.psnr_schedule(stages.DecoderTrainConfig(steps=100), 0) == 20.0
     assert stages.psnr_schedule(stages.DecoderTrainConfig(steps=100), 99) == 35.5
+
+
+def test_encoder_for_a_downscaling_reader_writes_only_what_the_reader_sees() -> None:
+    """With ``max_side``, the residual lies in the span of the read's adjoint (no energy the read cannot
+    see), keeps the PSNR at any size, and equals the plain encoder's when the image is not downscaled."""
+    cfg = stages.DecoderTrainConfig(bits=16, target_psnr=35.5)
+    enc = hidden_encoder.init_encoder(jax.random.PRNGKey(0), 16)
+    bits = jnp.asarray(stages.heldout_messages(2, 16))
+    grey = jnp.full((2, 48, 48, 3), 0.5, jnp.float32)  # no clipping: the residual is the encoder's own
+    encoded, _ = hidden_encoder.encode(enc, grey, bits, cfg, max_side=16)
+    residual = np.asarray(encoded - grey, np.float64)
+    assert np.all(-10 * np.log10(np.mean(residual**2, axis=(1, 2, 3))) >= 35.5 - 1e-3)
+
+    def read(x: jax.Array) -> jax.Array:
+        return dwt.ll2(read_window.downscaled(x[None], 16), cfg.wavelet)[0].ravel()
+
+    rows = np.asarray(jax.jacrev(read)(grey[0]), np.float64).reshape(-1, grey[0].size)  # [48, 6912]
+    for r in residual.reshape(2, -1):
+        coeffs = np.linalg.lstsq(rows.T, r, rcond=None)[0]
+        assert np.linalg.norm(rows.T @ coeffs - r) <= 1e-4 * np.linalg.norm(r)
+    # The plain encoder's residual is not confined so: the downscaled read sees less than the whole image.
+    plain = np.asarray(hidden_encoder.encode(enc, grey, bits, cfg)[0] - grey, np.float64).reshape(2, -1)
+    coeffs = np.linalg.lstsq(rows.T, plain[0], rcond=None)[0]
+    assert np.linalg.norm(rows.T @ coeffs - plain[0]) > 0.1 * np.linalg.norm(plain[0])
+    same = hidden_encoder.encode(enc, grey, bits, cfg, max_side=48)[0]
+    np.testing.assert_array_equal(
+        np.asarray(same), np.asarray(hidden_encoder.encode(enc, grey, bits, cfg)[0])
+    )
 
 
 def test_unknown_decoder_init_is_refused_before_anything_is_written(tmp_path: Path) -> None:

@@ -52,6 +52,34 @@ def test_eval_decoder_reports_every_side(tmp_path: Path, make_decoder, capsys) -
     assert len(err) == 1 and err[0].startswith("eval_decoder: error:")
 
 
+def test_eval_decoder_reads_an_encoder_writing_for_the_downscaled_read(
+    tmp_path: Path, make_decoder, capsys
+) -> None:
+    import jax
+
+    from mnerf_jax.reader.train import hidden_encoder, recipe
+
+    decoder = make_decoder(tmp_path / "dec8.npz", 8)
+    cfg = recipe.DecoderTrainConfig(bits=8, target_psnr=30.0)
+    encoder = tmp_path / "encoder.npz"
+    hidden_encoder.save_encoder(encoder, hidden_encoder.init_encoder(jax.random.PRNGKey(0), 8), cfg)
+    argv = ["--decoder", str(decoder), "--encoder", str(encoder), "--sizes", "16,48", "--images", "2"]
+    code = _script().main([*argv, "--iterations", "1", "--draws", "0", "--read-side", "16", "--json"])
+    assert code == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["encoder"] == str(encoder) and printed["target_psnr"] == 30.0
+    for row in printed["sizes"].values():
+        assert 0.0 <= row["encoder"]["bit_acc_none"] <= 1.0 and row["encoder"]["bit_acc_low"] is None
+        assert row["encoder"]["psnr_min"] >= 30.0 - 1e-3
+    # An encoder for another message length is refused in one line.
+    other = tmp_path / "encoder16.npz"
+    enc16 = hidden_encoder.init_encoder(jax.random.PRNGKey(0), 16)
+    hidden_encoder.save_encoder(other, enc16, recipe.DecoderTrainConfig(bits=16))
+    assert _script().main(["--decoder", str(decoder), "--encoder", str(other), "--sizes", "16"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "writes 16-bit messages" in err[0]
+
+
 def test_clean_bit_balance_counts_ones_per_bit(make_decoder, tmp_path: Path) -> None:
     from mnerf_jax.reader import decoder_io
 

@@ -249,6 +249,13 @@ def shipped_decoder_path(bits: int) -> Path:
     return ASSET_DIR / f"hidden_l{bits}.npz"
 
 
+def shipped_encoder_path(bits: int) -> Path | None:
+    """The HiDDeN encoder shipped with the ``bits`` decoder (what its held-out figures were encoded with), or
+    None when the package has none for it."""
+    path = shipped_decoder_path(bits).with_name(f"hidden_l{bits}_encoder.npz")
+    return path if path.is_file() else None
+
+
 def shipped_check_path(bits: int) -> Path:
     """Path of the small fixed batch of encoded images (uint8) shipped with the ``bits`` decoder."""
     return shipped_decoder_path(bits).with_name(f"hidden_l{bits}_check.npz")

@@ -32,6 +32,16 @@ def policy(cfg: DecoderTrainConfig) -> Callable[[jax.Array, jax.Array], jax.Arra
     return apply
 
 
+def reader(
+    cfg: DecoderTrainConfig, dec_vars: dict[str, Any], max_side: int = 0
+) -> Callable[[jax.Array], jax.Array]:
+    """``images [B, H, W, 3] -> logits [B, L]``: the decoder reading each image downscaled to at most
+    ``max_side`` pixels a side (``read_window.downscaled``; 0: as it is)."""
+    return lambda images: dec.apply_ll2(
+        dec_vars, dwt.ll2(read_window.downscaled(images, max_side), cfg.wavelet)
+    )
+
+
 def evaluate(
     cfg: DecoderTrainConfig,
     enc_vars: dict[str, Any],
@@ -39,25 +49,26 @@ def evaluate(
     images: np.ndarray,
     bits: np.ndarray,
     batch: int = 32,
+    max_side: int = 0,
 ) -> dict[str, float]:
-    """Bit accuracy with no attack and under the augmentation policy (several draws), and PSNR, on a set."""
+    """Bit accuracy with no attack and under the augmentation policy (several draws), and PSNR, on a set.
+
+    ``max_side``: the decoder reads each image downscaled to at most that side, and the encoder writes for
+    that read (``hidden_encoder.encode``); 0: both at the image's own size."""
     draws = cfg.eval_augment_draws
     augment_fn = policy(cfg) if draws > 0 else None
 
     # The variables are arguments, not closed-over constants (XLA would fold them at length).
     @jax.jit
     def run(enc_vars, dec_vars, x, m, key):
-        encoded, _ = encode(enc_vars, x, m, cfg, train=False)
-        clean = dec.apply_ll2(dec_vars, dwt.ll2(encoded, cfg.wavelet))
-        acc_clean = jnp.mean((clean > 0) == (m > 0.5), axis=-1)
+        read = reader(cfg, dec_vars, max_side)
+        encoded, _ = encode(enc_vars, x, m, cfg, train=False, max_side=max_side)
+        acc_clean = jnp.mean((read(encoded) > 0) == (m > 0.5), axis=-1)
         if augment_fn is None:
             acc_low = jnp.full_like(acc_clean, jnp.nan)
         else:
             # lax.map, not vmap: a batched policy index would run every augmentation branch.
-            attacked = jax.lax.map(
-                lambda k: dec.apply_ll2(dec_vars, dwt.ll2(augment_fn(k, encoded), cfg.wavelet)),
-                jax.random.split(key, draws),
-            )
+            attacked = jax.lax.map(lambda k: read(augment_fn(k, encoded)), jax.random.split(key, draws))
             acc_low = jnp.mean((attacked > 0) == (m > 0.5)[None], axis=(0, -1))
         mse = jnp.mean((encoded - x) ** 2, axis=(-3, -2, -1))
         return acc_clean, acc_low, -10.0 * jnp.log10(jnp.maximum(mse, 1e-12))
@@ -83,7 +94,7 @@ def evaluate(
         "psnr_min": float(psnr.min()),
         "images": int(len(images)),
         "informed": {
-            f"{n}_iterations": evaluate_informed(cfg, dec_vars, images, bits, n, batch)
+            f"{n}_iterations": evaluate_informed(cfg, dec_vars, images, bits, n, batch, max_side)
             for n in cfg.eval_informed_iterations
         },
     }
@@ -109,7 +120,7 @@ def evaluate_informed(
 
     @jax.jit
     def run(dec_vars, x, m, key):
-        read = lambda y: dec.apply_ll2(dec_vars, dwt.ll2(read_window.downscaled(y, max_side), cfg.wavelet))
+        read = reader(cfg, dec_vars, max_side)
         encoded = informed.informed_embed(read, x, m, cfg.target_psnr, iterations)
         acc_clean = jnp.mean((read(encoded) > 0) == (m > 0.5), axis=-1)
         if draws > 0:
@@ -208,8 +219,8 @@ def evaluate_across_sizes(
     after each count of ``iterations`` (how a radiance field carries the watermark: it follows the decoder's
     gradient), the HiDDeN encoder's images when ``enc_vars`` is given, each with no attack and under the
     Low policy (``cfg.eval_augment_draws`` draws; 0: no attacked read), every image at ≥ ``cfg.target_psnr``
-    dB; and the clean images' bit balance (:func:`clean_bit_balance`). ``max_side``: the informed and clean
-    reads see each image downscaled to at most that side (the encoder's images are read as they are).
+    dB; and the clean images' bit balance (:func:`clean_bit_balance`). ``max_side``: every read sees each
+    image downscaled to at most that side, and the encoder writes for that read.
     """
     out: dict[str, Any] = {}
     for size in sizes:
@@ -228,7 +239,13 @@ def evaluate_across_sizes(
         }
         if enc_vars is not None:
             encoded = evaluate(
-                dataclasses.replace(cfg, eval_informed_iterations=()), enc_vars, dec_vars, x, m, batch
+                dataclasses.replace(cfg, eval_informed_iterations=()),
+                enc_vars,
+                dec_vars,
+                x,
+                m,
+                batch,
+                max_side,
             )
             row["encoder"] = {k: v for k, v in encoded.items() if k != "informed"}
         out[f"{size}px"] = row

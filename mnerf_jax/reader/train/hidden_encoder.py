@@ -2,7 +2,10 @@
 
 ``(LL2(image)/4, message ±1) → LL2-domain pattern``, carried to the image through the adjoint of the LL2
 transform and scaled per image to a fixed RMS, so every encoded image has a PSNR of at least the run's
-``target_psnr`` against its original.
+``target_psnr`` against its original. For a reader that downscales what it reads to a fixed side
+(``watermark.reading.max_side``), the encoder works on the LL2 of the downscaled image and the adjoint of the
+whole read (downscale, then LL2) carries its pattern to the image: a smooth residual at any image size, the
+way Video Seal and Watermark Anything embed at a fixed side and upsample the residual.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mnerf_jax.core.errors import MnerfError
-from mnerf_jax.reader import decoder_io, dwt
+from mnerf_jax.reader import decoder_io, dwt, read_window
 from mnerf_jax.reader.train import informed
 from mnerf_jax.reader.train.recipe import DecoderTrainConfig
 
@@ -75,14 +78,21 @@ def encode(
     cfg: DecoderTrainConfig,
     train: bool = False,
     psnr: jax.Array | float | None = None,
+    max_side: int = 0,
 ) -> tuple[jax.Array, Any]:
     """Encoded images ``[B, H, W, 3]`` (clipped to [0, 1]) and the encoder's updated batch stats.
 
     The residual is scaled to the RMS of ``psnr`` dB (default ``cfg.target_psnr``) before clipping.
+    ``max_side``: write for a reader that sees each image downscaled to at most that side
+    (``read_window.downscaled``; 0: as it is).
     """
     psnr = cfg.target_psnr if psnr is None else psnr
     module = LL2Encoder(channels=cfg.encoder_channels, depth=cfg.encoder_depth)
-    ll2 = dwt.ll2(images, cfg.wavelet)
+
+    def read(x: jax.Array) -> jax.Array:
+        return dwt.ll2(read_window.downscaled(x, max_side), cfg.wavelet)
+
+    ll2 = read(images)
     signs = 2.0 * bits.astype(images.dtype) - 1.0
     variables = {"params": enc_vars["params"], "batch_stats": enc_vars["batch_stats"]}
     if train:
@@ -90,25 +100,43 @@ def encode(
         stats = upd["batch_stats"]
     else:
         pattern, stats = module.apply(variables, ll2 / 4.0, signs, train=False), enc_vars["batch_stats"]
-    # The adjoint of the (linear) LL2 transform carries the pattern to image resolution as a smooth residual.
-    adjoint = jax.linear_transpose(lambda x: dwt.ll2(x, cfg.wavelet), images)
+    # The adjoint of the (linear) read carries the pattern to image resolution as a smooth residual.
+    adjoint = jax.linear_transpose(read, images)
     (residual,) = adjoint(pattern)
     residual = informed.scale_to_psnr(residual, psnr)
     return jnp.clip(images + residual, 0.0, 1.0), stats
 
 
 def encode_batch(
-    cfg: DecoderTrainConfig, enc_vars: dict[str, Any], images: np.ndarray, bits: np.ndarray
+    cfg: DecoderTrainConfig,
+    enc_vars: dict[str, Any],
+    images: np.ndarray,
+    bits: np.ndarray,
+    max_side: int = 0,
 ) -> np.ndarray:
-    """Encoded images as float32 in [0, 1] (eval mode)."""
-    return np.asarray(_encode_eval(enc_vars, jnp.asarray(images), jnp.asarray(bits), cfg))
+    """Encoded images as float32 in [0, 1] (eval mode); ``max_side`` as :func:`encode`'s."""
+    return np.asarray(_encode_eval(enc_vars, jnp.asarray(images), jnp.asarray(bits), cfg, max_side))
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",))
+@functools.partial(jax.jit, static_argnames=("cfg", "max_side"))
 def _encode_eval(
-    enc_vars: dict[str, Any], images: jax.Array, bits: jax.Array, cfg: DecoderTrainConfig
+    enc_vars: dict[str, Any],
+    images: jax.Array,
+    bits: jax.Array,
+    cfg: DecoderTrainConfig,
+    max_side: int = 0,
 ) -> jax.Array:
-    return encode(enc_vars, images, bits, cfg)[0]
+    return encode(enc_vars, images, bits, cfg, max_side=max_side)[0]
+
+
+def save_encoder(path: str | Path, enc_vars: dict[str, Any], cfg: DecoderTrainConfig) -> None:
+    """Write the encoder's variables (float32) and the training config, as :func:`load_encoder` reads them."""
+    flat = decoder_io._flatten({"params": enc_vars["params"], "batch_stats": enc_vars["batch_stats"]})
+    np.savez_compressed(
+        path,
+        **{k: np.asarray(v, np.float32) for k, v in flat.items()},
+        __metadata__=np.frombuffer(json.dumps({"config": cfg.to_dict()}).encode(), np.uint8),
+    )
 
 
 def load_encoder(path: str | Path) -> tuple[dict[str, Any], DecoderTrainConfig]:

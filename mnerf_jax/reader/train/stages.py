@@ -52,7 +52,7 @@ from mnerf_jax.reader import decoder_io, dwt
 from mnerf_jax.reader.train.checkpoint import ARRAY_KEYS, load_checkpoint, save_checkpoint
 from mnerf_jax.reader.train.cover_images import ImageSource, heldout_images, heldout_messages
 from mnerf_jax.reader.train.evaluation import clean_accuracy, evaluate_sizes
-from mnerf_jax.reader.train.hidden_encoder import encode_batch, init_encoder
+from mnerf_jax.reader.train.hidden_encoder import encode_batch, init_encoder, save_encoder
 from mnerf_jax.reader.train.recipe import (
     DecoderTrainConfig,
     finetune_decoder_start_step,
@@ -404,12 +404,7 @@ def finish(cfg: DecoderTrainConfig, state: dict[str, Any], out: Path, wall: floa
         **this_run,  # the decoder file's metadata holds the whole record
         **evaluation,
     }
-    flat = decoder_io._flatten({"params": enc_vars["params"], "batch_stats": enc_vars["batch_stats"]})
-    np.savez_compressed(
-        out / "encoder.npz",
-        **{k: np.asarray(v, np.float32) for k, v in flat.items()},
-        __metadata__=np.frombuffer(json.dumps({"config": cfg.to_dict()}).encode(), np.uint8),
-    )
+    save_encoder(out / "encoder.npz", enc_vars, cfg)
     np.savez_compressed(
         out / "check.npz",
         images=check_images,
