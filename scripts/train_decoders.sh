@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Train the shipped HiDDeN decoders and copy them, with their check batches and encoders, into the package.
 # Usage: [BITS="8 32"] scripts/train_decoders.sh [OUT_DIR] [extra train-decoder flags, e.g. --images DIR]
-# BITS names the message lengths to (re)train, all four shipped ones by default (times: docs/decoders.md).
+# BITS names the message lengths to (re)train, 8, 16, 32 and 48 by default (times: docs/decoders.md); a
+# length ships once decoder_io.SHIPPED_BITS names it.
 # A killed run continues where it stopped when the script is run again (the runs resume).
 # Each decoder then gets a wider, deeper HiDDeN encoder refitted for it: up to 16 bits the decoder is copied
 # unchanged (docs/decoders.md, "The encoder refit"); from 32 bits the decoder learns too once the encoder
