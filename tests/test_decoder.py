@@ -313,6 +313,24 @@ def test_shipped_decoder_reproduces_recorded_accuracy(bits: int) -> None:
     assert 0.3 < clean_acc < 0.7
 
 
+@pytest.mark.parametrize("bits", decoder_io.SHIPPED_BITS)
+def test_shipped_encoder_writes_what_its_decoder_reads_at_any_size(bits: int) -> None:
+    """The encoder shipped beside each decoder, on held-out images and messages at its 35.5 dB: read at its
+    training side (64²) and, writing for the downscaled read, at 256² (docs/decoders.md has the figures)."""
+    path = decoder_io.shipped_encoder_path(bits)
+    if path is None:
+        pytest.skip(f"no shipped {bits}-bit encoder in this checkout (scripts/train_decoders.sh trains it)")
+    enc_vars, cfg = hidden_encoder.load_encoder(path)
+    loaded = decoder_io.load_shipped_decoder(bits)
+    assert cfg.bits == bits
+    messages = stages.heldout_messages(12, bits)
+    for side in (64, 256):
+        images = stages.heldout_images(12, side)
+        encoded = hidden_encoder.encode_batch(cfg, enc_vars, images, messages, max_side=64)
+        logits = dec.decode_logits(loaded.variables, read_window.downscaled(jnp.asarray(encoded), 64))
+        assert float(jnp.mean((logits > 0) == (jnp.asarray(messages) > 0))) >= 0.9
+
+
 def test_shipped_decoder_missing_bits() -> None:
     with pytest.raises(MnerfError, match="no shipped decoder for 32 bits"):
         decoder_io.shipped_decoder_path(32)
