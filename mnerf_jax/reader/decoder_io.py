@@ -250,8 +250,8 @@ def shipped_decoder_path(bits: int) -> Path:
 
 
 def shipped_encoder_path(bits: int) -> Path | None:
-    """The HiDDeN encoder shipped with the ``bits`` decoder (what its held-out figures were encoded with), or
-    None when the package has none for it."""
+    """The HiDDeN encoder shipped with the ``bits`` decoder (trained against it, which stays frozen), or None
+    when the package has none for it."""
     path = shipped_decoder_path(bits).with_name(f"hidden_l{bits}_encoder.npz")
     return path if path.is_file() else None
 
