@@ -14,7 +14,7 @@ import numpy as np
 
 from mnerf_jax.imaging import augment
 from mnerf_jax.reader import decoder as dec
-from mnerf_jax.reader import dwt, read_window
+from mnerf_jax.reader import read_window
 from mnerf_jax.reader.train import informed
 from mnerf_jax.reader.train.cover_images import EVAL_SEED, heldout_images, heldout_messages
 from mnerf_jax.reader.train.hidden_encoder import encode, encode_batch
@@ -37,9 +37,7 @@ def reader(
 ) -> Callable[[jax.Array], jax.Array]:
     """``images [B, H, W, 3] -> logits [B, L]``: the decoder reading each image downscaled to at most
     ``max_side`` pixels a side (``read_window.downscaled``; 0: as it is)."""
-    return lambda images: dec.apply_ll2(
-        dec_vars, dwt.ll2(read_window.downscaled(images, max_side), cfg.wavelet)
-    )
+    return lambda images: dec.decode_logits(dec_vars, read_window.downscaled(images, max_side), cfg.wavelet)
 
 
 def evaluate(
