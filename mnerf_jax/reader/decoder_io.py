@@ -35,7 +35,7 @@ from mnerf_jax.reader.decoder import (
     with_pool_margin,
 )
 
-SHIPPED_BITS = (16, 48)
+SHIPPED_BITS = (8, 16, 48)
 FORMAT = "mnerf-hidden-decoder"
 FORMAT_VERSION = 1
 _META_KEY = "__metadata__"
@@ -240,7 +240,7 @@ def fresh_decoder(
 
 
 def shipped_decoder_path(bits: int) -> Path:
-    """Path of the decoder shipped inside the package for ``bits`` (16 or 48)."""
+    """Path of the decoder shipped inside the package for ``bits`` (:data:`SHIPPED_BITS`)."""
     if bits not in SHIPPED_BITS:
         raise MnerfError(
             f"no shipped decoder for {bits} bits (shipped: {', '.join(map(str, SHIPPED_BITS))}); "
