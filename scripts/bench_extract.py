@@ -92,7 +92,7 @@ def torch_runner(torch, variables: dict, images: np.ndarray, wavelet: str) -> Ca
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--bits", type=int, default=16, help="shipped decoder to time (8, 16 or 48)")
+    parser.add_argument("--bits", type=int, default=16, help="shipped decoder to time (8, 16, 32 or 48)")
     parser.add_argument("--sizes", type=int, nargs="+", default=[100, 200, 800], help="image sides (pixels)")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 32], help="batch sizes")
     parser.add_argument("--repeats", type=int, default=5, help="timings per row; the best is kept")

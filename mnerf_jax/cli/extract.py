@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--bits",
         type=int,
         default=None,
-        help="message length: picks the shipped decoder (8, 16 or 48), or checks --decoder",
+        help="message length: picks the shipped decoder (8, 16, 32 or 48), or checks --decoder",
     )
     parser.add_argument(
         "--threshold",

@@ -35,7 +35,7 @@ from mnerf_jax.reader.decoder import (
     with_pool_margin,
 )
 
-SHIPPED_BITS = (8, 16, 48)
+SHIPPED_BITS = (8, 16, 32, 48)
 FORMAT = "mnerf-hidden-decoder"
 FORMAT_VERSION = 1
 _META_KEY = "__metadata__"
