@@ -118,15 +118,21 @@ def save_decoder(
         pool_margin=margin,
         fingerprint=fingerprint(with_pool_margin(_unflatten(flat), margin)),
     )
-    payload = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
+    write_npz_atomic(path, flat, meta)
+    return meta
+
+
+def write_npz_atomic(path: str | Path, arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> None:
+    """Write ``arrays`` and ``meta`` (JSON, under ``__metadata__``) to a compressed ``.npz`` at ``path``,
+    atomically (a temporary file, then a rename), so a killed write never leaves a truncated file."""
+    payload = np.frombuffer(json.dumps(dict(meta), sort_keys=True).encode(), np.uint8)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, **{_META_KEY: payload}, **flat)
+    np.savez_compressed(buffer, **{_META_KEY: payload}, **arrays)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(buffer.getvalue())
     os.replace(tmp, path)
-    return meta
 
 
 def _expected_shapes(bits: int, channels: int, depth: int) -> dict[str, tuple[int, ...]]:

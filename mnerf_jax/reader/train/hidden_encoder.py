@@ -130,13 +130,11 @@ def _encode_eval(
 
 
 def save_encoder(path: str | Path, enc_vars: dict[str, Any], cfg: DecoderTrainConfig) -> None:
-    """Write the encoder's variables (float32) and the training config, as :func:`load_encoder` reads them."""
+    """Write the encoder's variables (float32) and the training config atomically, as :func:`load_encoder`
+    reads them."""
     flat = decoder_io._flatten({"params": enc_vars["params"], "batch_stats": enc_vars["batch_stats"]})
-    np.savez_compressed(
-        path,
-        **{k: np.asarray(v, np.float32) for k, v in flat.items()},
-        __metadata__=np.frombuffer(json.dumps({"config": cfg.to_dict()}).encode(), np.uint8),
-    )
+    arrays = {k: np.asarray(v, np.float32) for k, v in flat.items()}
+    decoder_io.write_npz_atomic(path, arrays, {"config": cfg.to_dict()})
 
 
 def load_encoder(path: str | Path) -> tuple[dict[str, Any], DecoderTrainConfig]:
