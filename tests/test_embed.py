@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import shutil
@@ -1105,6 +1106,43 @@ def test_fidelity_budget_ramps_linearly_in_db_over_the_schedule(
     assert {O.fidelity_budget_db(plain, step, total) for step in (0, total // 2, total)} == {start}
 
 
+@settings(deadline=None, max_examples=60)
+@given(
+    floor=st.floats(20.0, 45.0),
+    over=st.floats(0.0, 12.0),
+    source=st.floats(15.0, 40.0),
+    step=st.integers(0, 1000),
+)
+def test_the_budget_ends_above_the_source_by_over_source_and_never_below_the_floor(
+    floor: float, over: float, source: float, step: int
+) -> None:
+    # watermark.fidelity.over_source: the budget ends at max(psnr, source + over_source); 0 or no source
+    # measured leaves fidelity.psnr; the ramp then rises to that end instead of to fidelity.psnr.
+    cfg = wm_config(fidelity_psnr=floor, fidelity_psnr_start=10.0, fidelity_ramp=(0.2, 0.6))
+    cfg = dataclasses.replace(cfg, fidelity=dataclasses.replace(cfg.fidelity, over_source=over))
+    end = O.budget_end_db(cfg, source)
+    if over:
+        assert end == max(floor, source + over)
+    else:
+        assert end == floor
+    assert O.budget_end_db(cfg, None) == floor
+    assert end >= floor and O.budget_end_db(cfg, source + 1.0) >= end  # a sharper source, no looser budget
+    assert O.fidelity_budget_db(cfg, 1000, 1000, end) == end
+    assert O.fidelity_budget_db(cfg, 100, 1000, end) == 10.0
+    assert 10.0 - 1e-9 <= O.fidelity_budget_db(cfg, step, 1000, end) <= end + 1e-9
+    with pytest.raises(MnerfError, match="over_source"):
+        dataclasses.replace(cfg.fidelity, over_source=-1.0)
+
+
+def test_source_psnr_is_the_mean_of_the_per_view_psnrs() -> None:
+    # Brute force: view v off by a uniform 0.1·(v+1) has MSE 0.01·(v+1)², so PSNR 20 − 20·log10(v+1).
+    truth = np.full((3, 4, 5, 3), 0.5, np.float32)
+    renders = (truth + 0.1 * np.arange(1, 4, dtype=np.float32)[:, None, None, None]).astype(np.float16)
+    expected = np.mean([20.0 - 20.0 * np.log10(v + 1) for v in range(3)])
+    assert abs(EI.source_psnr(renders, truth) - expected) < 0.01  # float16 holds 0.6 to 2.4e-4
+    assert EI.source_psnr(truth.astype(np.float16), truth) > 100.0
+
+
 def test_fidelity_ramp_is_checked() -> None:
 
     with pytest.raises(MnerfError, match="fidelity.psnr_start"):
@@ -1174,6 +1212,27 @@ def test_embedding_steps_receive_the_ramps_budget(tiny: TinyRuns) -> None:
     )
     assert sorted(seen) == [0, 1, 2, 3]
     np.testing.assert_allclose([seen[s] for s in range(4)], [10.0, 10.0, 20.0, 30.0], atol=1e-3)
+
+    # With over_source the ramp ends at the source's training-view PSNR plus it (above the 30 dB floor),
+    # measured on the clean model's renders of the training views; embed.json keeps that end.
+    source = E.load_source(tiny.fit)
+    split = source.load_scene(None, splits=("train",)).split("train")
+    trained = EI.source_psnr(EI.clean_references(source, split), split.images)
+    seen.clear()
+    E.embed(
+        tiny.fit,
+        root / "ramp_over_source",
+        2,
+        8,
+        overrides=[*overrides, "watermark.fidelity.over_source=20"],
+        decoder_path=tiny.decoder,
+        progress=False,
+        on_step=lambda step, metrics: seen.__setitem__(step, metrics["psnr_budget"]),
+    )
+    end = json.loads((root / "ramp_over_source" / wm_run.META_FILE).read_text())["quality_budget_db"]
+    assert trained + 20.0 > 30.0
+    assert abs(end - (trained + 20.0)) < 0.05  # the cached samples' renders, float16 references
+    np.testing.assert_allclose([seen[s] for s in range(4)], [10.0, 10.0, (10.0 + end) / 2, end], atol=1e-2)
 
 
 def test_clean_term_reads_the_clean_models_render_when_asked() -> None:

@@ -198,6 +198,7 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
         "fidelity.psnr": 0.0,
         "fidelity.psnr_start": 0.0,
         "fidelity.ramp": (0.0, 0.0),
+        "fidelity.over_source": 0.0,
         "augment.prob": 0.75,
         "schedule.patch_size": 64,
         "schedule.phase2_steps": 2600,

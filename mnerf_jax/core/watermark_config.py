@@ -250,11 +250,18 @@ class FidelityConfig:
     # in dB to psnr by ramp[1]. 0: psnr from the first step.
     psnr_start: float = setting(0.0, host=True)
     ramp: tuple[float, float] = setting((0.0, 0.0), host=True)
+    # dB; > 0: the budget ends at least this far above the source's own PSNR on its training views, so that
+    # a sharper source is held to a tighter budget (psnr is then the floor). 0: psnr alone.
+    over_source: float = setting(0.0, host=True)
 
     def __post_init__(self) -> None:
         _require(
             self.psnr >= 0 and self.weight >= 0,
             f"watermark.fidelity.psnr (dB, 0: off) and weight must be ≥ 0, got {self.psnr} and {self.weight}",
+        )
+        _require(
+            self.over_source >= 0,
+            f"watermark.fidelity.over_source (dB, 0: off) must be ≥ 0, got {self.over_source}",
         )
         if self.psnr_start:
             _require(

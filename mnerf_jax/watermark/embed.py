@@ -68,9 +68,9 @@ from mnerf_jax.watermark import phase3 as decoder_refit
 from mnerf_jax.watermark import run as wm_run
 from mnerf_jax.watermark import sample_cache
 from mnerf_jax.watermark.deferred import patch_layout, tiling_patch_size, whole_view_layout
-from mnerf_jax.watermark.inputs import check_rgb_images, clean_references
+from mnerf_jax.watermark.inputs import check_rgb_images, clean_references, source_psnr
 from mnerf_jax.watermark.loop import EmbedLoop, EmbedResult, seed_budgets
-from mnerf_jax.watermark.objective import uses_clean_renders
+from mnerf_jax.watermark.objective import budget_end_db, uses_clean_renders, uses_fidelity
 from mnerf_jax.watermark.run import WM_KIND, EmbedError
 from mnerf_jax.watermark.step import EmbedState, make_optimizer, total_steps
 
@@ -366,6 +366,15 @@ def embed(
                 if cache is None
                 else sample_cache.clean_renders(cache, geometry.white_bg).reshape(split.images.shape)
             )
+        end_db = None
+        if references is not None and uses_fidelity(cfg) and cfg.fidelity.over_source:
+            trained = source_psnr(references, split.images)
+            end_db = budget_end_db(cfg, trained)
+            print(
+                f"mnerf embed: the source reads {trained:.2f} dB on its training views; "
+                f"the quality budget ends at {end_db:.2f} dB against its renders",
+                file=sys.stderr,
+            )
         loop = EmbedLoop(
             config,
             split,
@@ -380,6 +389,7 @@ def embed(
             vgg,
             references,
             cache=cache,
+            budget_end_db=end_db,
         )
         result = loop.run(state, stop_at, started)
         cfg = loop.config.watermark  # the budget may have sized the field's schedule

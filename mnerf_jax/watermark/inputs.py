@@ -75,6 +75,16 @@ def clean_references(source: runs.LoadedRun, split: Any, progress: bool = False)
     return np.stack(images).astype(np.float16)
 
 
+def source_psnr(references: np.ndarray, images: np.ndarray) -> float:
+    """The clean model's mean per-view PSNR (dB) on its training views: ``references [V, H, W, 3]`` (its
+    renders, :func:`clean_references`) against ``images [V, H, W, 3]`` (the ground truth, in [0, 1])."""
+    per_view = []
+    for render, truth in zip(references, images, strict=True):
+        mse = np.mean(np.square(render.astype(np.float64) - truth.astype(np.float64)))
+        per_view.append(10.0 * np.log10(1.0 / max(float(mse), 1e-12)))
+    return float(np.mean(per_view))
+
+
 def step_choice(
     seed: int, step: int, num_ids: int, num_views: int, ids_per_step: int = 1
 ) -> tuple[tuple[int, ...], int]:

@@ -120,6 +120,7 @@ class EmbedLoop:
     cache: sample_cache.SampleCache | None = (
         None  # watermark.schedule.cache_source: the fitted field's samples
     )
+    budget_end_db: float | None = None  # where the quality budget ends (objective.budget_end_db)
 
     def __post_init__(self) -> None:
         # What every step passes unchanged, made once rather than per step.
@@ -176,7 +177,12 @@ class EmbedLoop:
         keys_lib.save_keys(self.out, self.keys)
         rundir.write_json_atomic(
             self.out / META_FILE,
-            {"steps_done": step, "phase": meta["phase"], "decoder_fingerprint": dec_meta["fingerprint"]},
+            {
+                "steps_done": step,
+                "phase": meta["phase"],
+                "decoder_fingerprint": dec_meta["fingerprint"],
+                **({"quality_budget_db": self.budget_end_db} if self.budget_end_db is not None else {}),
+            },
         )
         if self.clock is not None:
             self.clock.checkpoint_s = time.perf_counter() - tick
@@ -190,7 +196,7 @@ class EmbedLoop:
         if self.cache is not None:
             batch.update({k: jnp.asarray(v) for k, v in self.cache.view(view).items()})
         if uses_fidelity(cfg):  # the budget as data: its ramp (fidelity_budget_db) compiles once
-            budget = metrics_lib.psnr_to_mse(fidelity_budget_db(cfg, step, self._horizon))
+            budget = metrics_lib.psnr_to_mse(fidelity_budget_db(cfg, step, self._horizon, self.budget_end_db))
             batch["fidelity_mse"] = np.float32(budget)
         db, cb = self.budgets() if self.cache is None else (0, 0)  # a cached render marches no ray
         spec = StepSpec(

@@ -30,19 +30,31 @@ def uses_clean_renders(cfg: WatermarkConfig) -> bool:
     return uses_fidelity(cfg) or (cfg.losses.lambda_clean > 0 and cfg.losses.clean_negative == "clean_model")
 
 
-def fidelity_budget_db(cfg: WatermarkConfig, step: int, total: int) -> float:
-    """The quality budget (dB of PSNR against the clean model's render) at step ``step`` of a ``total``-step
-    schedule: ``fidelity.psnr``, or with ``fidelity.psnr_start`` > 0 that until the fraction
-    ``fidelity.ramp[0]`` of the steps, then linear in dB up to ``fidelity.psnr`` at ``fidelity.ramp[1]``,
-    then ``fidelity.psnr``. Host side: the step receives the budget as data, so the ramp compiles once."""
-    if not cfg.fidelity.psnr_start:
+def budget_end_db(cfg: WatermarkConfig, source_psnr: float | None) -> float:
+    """Where the quality budget ends (dB against the clean model's render): ``fidelity.psnr``, or with
+    ``fidelity.over_source`` > 0 and the source's PSNR on its training views ``source_psnr`` (dB against
+    their ground truth) at least ``source_psnr + over_source``. A watermark's error adds to the model's own,
+    so the loss against the ground truth follows the budget's distance above the source's PSNR."""
+    if not cfg.fidelity.over_source or source_psnr is None:
         return float(cfg.fidelity.psnr)
+    return max(float(cfg.fidelity.psnr), float(source_psnr) + float(cfg.fidelity.over_source))
+
+
+def fidelity_budget_db(cfg: WatermarkConfig, step: int, total: int, end_db: float | None = None) -> float:
+    """The quality budget (dB of PSNR against the clean model's render) at step ``step`` of a ``total``-step
+    schedule: ``end_db`` (default ``fidelity.psnr``; :func:`budget_end_db`), or with ``fidelity.psnr_start``
+    > 0 that until the fraction ``fidelity.ramp[0]`` of the steps, then linear in dB up to ``end_db`` at
+    ``fidelity.ramp[1]``, then ``end_db``. Host side: the step receives the budget as data, so the ramp
+    compiles once."""
+    end = float(cfg.fidelity.psnr if end_db is None else end_db)
+    if not cfg.fidelity.psnr_start:
+        return end
     first, last = (float(f) * max(int(total), 1) for f in cfg.fidelity.ramp)
     if step <= first:
         return float(cfg.fidelity.psnr_start)
     if step >= last:
-        return float(cfg.fidelity.psnr)
-    span = cfg.fidelity.psnr - cfg.fidelity.psnr_start
+        return end
+    span = end - cfg.fidelity.psnr_start
     return float(cfg.fidelity.psnr_start + span * (step - first) / (last - first))
 
 
