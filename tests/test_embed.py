@@ -1140,7 +1140,7 @@ def test_source_psnr_is_the_mean_of_the_per_view_psnrs() -> None:
     renders = (truth + 0.1 * np.arange(1, 4, dtype=np.float32)[:, None, None, None]).astype(np.float16)
     expected = np.mean([20.0 - 20.0 * np.log10(v + 1) for v in range(3)])
     assert abs(EI.source_psnr(renders, truth) - expected) < 0.01  # float16 holds 0.6 to 2.4e-4
-    assert EI.source_psnr(truth.astype(np.float16), truth) > 100.0
+    assert EI.source_psnr(truth.astype(np.float16), truth) >= 60.0  # identical views: the metric's cap
 
 
 def test_fidelity_ramp_is_checked() -> None:

@@ -16,6 +16,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from mnerf_jax.data import camera_rays
+from mnerf_jax.imaging import metrics
 from mnerf_jax.reader import keys as keys_lib
 from mnerf_jax.tensorf import run as runs
 from mnerf_jax.watermark.run import EmbedError
@@ -78,10 +79,11 @@ def clean_references(source: runs.LoadedRun, split: Any, progress: bool = False)
 def source_psnr(references: np.ndarray, images: np.ndarray) -> float:
     """The clean model's mean per-view PSNR (dB) on its training views: ``references [V, H, W, 3]`` (its
     renders, :func:`clean_references`) against ``images [V, H, W, 3]`` (the ground truth, in [0, 1])."""
-    per_view = []
-    for render, truth in zip(references, images, strict=True):
-        mse = np.mean(np.square(render.astype(np.float64) - truth.astype(np.float64)))
-        per_view.append(10.0 * np.log10(1.0 / max(float(mse), 1e-12)))
+    # One view at a time, as evaluation scores them (metrics.psnr), so memory stays one view's.
+    per_view = [
+        float(metrics.psnr(jnp.asarray(render, jnp.float32), jnp.asarray(truth, jnp.float32)))
+        for render, truth in zip(references, images, strict=True)
+    ]
     return float(np.mean(per_view))
 
 
