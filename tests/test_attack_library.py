@@ -10,6 +10,7 @@ import pytest
 from mnerf_jax.evaluation import attack_report
 from mnerf_jax.imaging import attack_suites as S
 from mnerf_jax.imaging import attacks as A
+from mnerf_jax.imaging import training_attacks as T
 from mnerf_jax.imaging.attacks import AttackError
 
 NUMPY_ATTACKS = [name for name in S.SUITES["all"] if S.ATTACKS[name].family != "paper"]
@@ -437,3 +438,37 @@ def test_the_plot_lays_long_suites_down_the_page(tmp_path) -> None:
     short_h, short_w = iio.imread(short).shape[:2]
     long_h, long_w = iio.imread(long).shape[:2]
     assert short_w > short_h and long_h > long_w
+
+
+@pytest.mark.parametrize("name", sorted(T.TRAINING_ATTACKS))
+def test_every_training_attack_keeps_the_size_and_8_bits_and_changes_the_image(name) -> None:
+    # Phase 3 stacks its attacked images into one array: every attack it draws keeps the image's shape.
+    images = _images(b=3, texture=0.2)
+    first = T.apply(name, images[:1], np.random.default_rng(4))
+    again = T.apply(name, images[:1], np.random.default_rng(4))
+    assert first.shape == images[:1].shape and first.dtype == np.uint8
+    np.testing.assert_array_equal(first, again)
+    assert np.abs(first.astype(int) - images[:1]).max() > 0
+
+
+def test_training_attacks_are_drawn_image_by_image_from_the_generator() -> None:
+    images = _images(b=6, texture=0.2)
+    one = T.random_attacks(images, np.random.default_rng(9))
+    np.testing.assert_array_equal(one, T.random_attacks(images, np.random.default_rng(9)))
+    other = T.random_attacks(images, np.random.default_rng(10))
+    assert one.shape == images.shape and one.dtype == np.uint8
+    assert not np.array_equal(one, other)
+    assert all(np.abs(a.astype(int) - x).max() > 0 for a, x in zip(one, images, strict=True))
+    with pytest.raises(AttackError, match="uint8"):
+        T.random_attacks(images.astype(np.float32), np.random.default_rng(0))
+
+
+def test_training_attacks_span_the_peers_protocol() -> None:
+    # The parameters drawn reach the peers' settings (JPEG 10 and 50, σ = 0.1 noise, brightness × 2,
+    # rotation 30°, rescaling to 75 %), so that the reader trains on what it is measured under.
+    rng = np.random.default_rng(0)
+    drawn = {name: [sample(rng) for _ in range(4000)] for name, (_, _, sample) in T.TRAINING_ATTACKS.items()}
+    assert min(drawn["jpeg"]) <= 10 and max(drawn["jpeg"]) >= 90
+    assert max(drawn["gaussian_noise"]) >= 0.1 and max(drawn["brightness"]) >= 2.0
+    assert min(drawn["brightness"]) <= 0.55 and max(drawn["rotate"]) >= 29.0
+    assert min(drawn["rescale"]) <= 0.55 and max(drawn["rescale"]) >= 1.45

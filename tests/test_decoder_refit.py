@@ -543,3 +543,88 @@ def test_the_generic_negatives_are_photo_crops_and_textures_of_the_renders_shape
     assert not np.array_equal(images, decoder_refit.generic_negatives(6, 24, 40, seed=1))
     assert all(image.std() > 1 for image in images)
     assert decoder_refit.generic_count(400) == 133 and decoder_refit.generic_count(1) == 1
+
+
+def test_phase_three_reads_its_attacked_copies_at_the_configured_share() -> None:
+    # phase3.attacked = 1: every render and negative is read from its attacked copy, so the plain images no
+    # longer enter the loss; 0: the copies are never read.
+    data, variables = _two_class_set()
+    cfg_read = wm_config(phase3_steps=10, phase3_batch=8, augment_prob=0.0, read_window=1.0)
+    reads = lambda x: np.asarray(read_window.read_window(jnp.asarray(x), 1.0, None, max_side=0))  # noqa: E731
+    rng = np.random.default_rng(2)
+    attacked = data.replace(
+        attacked=np.stack([decoder_refit.attacked_reads(r, cfg_read, rng) for r in data.renders]),
+        attacked_negatives=decoder_refit.attacked_reads(data.negatives, cfg_read, rng),
+    )
+    assert attacked.attacked.shape == data.renders.shape and attacked.attacked.dtype == np.float16
+    assert attacked.attacked_negatives.shape == data.negatives.shape
+    assert np.abs(attacked.attacked - data.renders).max() > 0.01
+    blank = attacked.replace(renders=np.zeros_like(data.renders), negatives=np.zeros_like(data.negatives))
+    garbage = data.replace(
+        attacked=rng.uniform(0, 1, attacked.attacked.shape).astype(np.float16),
+        attacked_negatives=rng.uniform(0, 1, attacked.attacked_negatives.shape).astype(np.float16),
+    )
+    assert reads(data.renders[0]).shape == data.renders.shape[1:]  # the whole image is the window here
+
+    def loss(share: float, d: decoder_refit.RefitSet) -> float:
+        cfg = wm_config(
+            phase3={"steps": 10, "batch": 8, "attacked": share}, augment_prob=0.0, read_window=1.0
+        )
+        step = decoder_refit.make_refit_step(cfg, variables)
+        opt_state = decoder_refit.refit_optimizer(cfg).init(variables["params"])
+        arrays = jax.tree.map(jnp.asarray, d)
+        return float(step(variables["params"], opt_state, jax.random.key(5), arrays, 0, 10)[2])
+
+    assert loss(1.0, attacked) == pytest.approx(loss(1.0, blank), rel=1e-6)
+    assert loss(1.0, attacked) != pytest.approx(
+        loss(1.0, data.replace(attacked=garbage.attacked, attacked_negatives=garbage.attacked_negatives)),
+        rel=1e-3,
+    )
+    assert loss(0.0, garbage) == pytest.approx(loss(0.0, data), rel=1e-6)
+
+
+def test_the_refit_set_keeps_each_image_read_after_real_attacks_when_asked(tiny: TinyRuns) -> None:
+    wm = wm_run.load_watermarked_run(tiny.wm)
+    clean = wm_run.load_run(tiny.fit)
+    split = wm.load_scene(None, splits=("train",)).split("train")
+    base = wm.config.watermark
+    cfg = dataclasses.replace(base, phase3=dataclasses.replace(base.phase3, views=2, attacked=0.5))
+    data = decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images, clean)
+    n_ids, n_views = data.renders.shape[:2]
+    plain = decoder_refit.reads_of(split.images[:1].astype(np.float32) / 255.0, cfg)[:, 0]
+    assert data.attacked.shape == (n_ids, n_views, *plain.shape[1:])
+    assert data.attacked_negatives.shape == (len(data.negatives), *plain.shape[1:])
+    assert data.attacked.dtype == data.attacked_negatives.dtype == np.float16
+    # Read after an attack, not as rendered; and drawn from the run's seed: the same set again.
+    if data.compact:
+        as_rendered = data.renders[:, :, 0]
+    else:
+        as_rendered = np.stack([decoder_refit.reads_of(r, cfg)[:, 0] for r in data.renders])
+    assert np.abs(data.attacked - as_rendered).mean() > 1e-3
+    again = decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images, clean)
+    np.testing.assert_array_equal(again.attacked, data.attacked)
+    np.testing.assert_array_equal(again.attacked_negatives, data.attacked_negatives)
+    none = decoder_refit.render_refit_set(wm, split.cameras, base, split.images, clean)
+    assert none.attacked is None and none.attacked_negatives is None
+
+
+def test_the_refit_script_redoes_phase_three_into_a_copy(tiny: TinyRuns, tmp_path, capsys) -> None:
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "refit_phase3.py"
+    spec = importlib.util.spec_from_file_location("refit_phase3_script", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    keys_before, decoder_before = wm_run.load_keys_and_decoder(tiny.wm)
+    out = tmp_path / "refit"
+    phase3 = {"steps": 6, "batch": 4, "views": 2, "attacked": 0.5}
+    argv = ["--run", str(tiny.wm), "--out", str(out)]
+    argv += [a for k, v in phase3.items() for a in ("--set", f"watermark.phase3.{k}={v}")]
+    assert script.main(argv) == 0
+    keys, decoder = wm_run.load_keys_and_decoder(out)  # the copy's keys are tied to its new decoder
+    assert decoder.fingerprint != decoder_before.fingerprint
+    np.testing.assert_array_equal(keys.messages, keys_before.messages)
+    assert json.loads((out / "config.json").read_text())["watermark"]["phase3"]["attacked"] == 0.5
+    assert wm_run.load_keys_and_decoder(tiny.wm)[1].fingerprint == decoder_before.fingerprint  # untouched
+    assert script.main(argv) == 2 and "exists" in capsys.readouterr().err

@@ -207,6 +207,7 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
         "phase3.reserve_min": 0.0,
         "phase3.batch": 32,
         "phase3.lambda_clean": 0.3,
+        "phase3.attacked": 0.0,
         "reading.jitter": 0,
         "reading.max_side": 64,
         "phase3.view_density": "angles",
@@ -228,9 +229,11 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
     assert 20.0 < float(fidelity_budget_db(cfg, 3800, total)) < 41.5
     # Then the decoder alone: 24,000 steps of 16 renders on the training views and 200 novel views, its
     # negatives weighed 1, with 35 of the 60 minutes kept for it; the novel views spread over the sphere's
-    # area 5° past the training cameras' elevations; renders are read over the 9 windows within a pixel.
+    # area 5° past the training cameras' elevations, half of the renders and negatives read after real
+    # attacks; renders are read over the 9 windows within a pixel.
     phase3 = (
         cfg.phase3.steps,
+        cfg.phase3.attacked,
         cfg.phase3.batch,
         cfg.phase3.views,
         cfg.phase3.lambda_clean,
@@ -239,7 +242,7 @@ def test_the_cpu_quality_preset_is_the_cpu_preset_with_a_cached_source_a_ramp_no
         cfg.phase3.view_density,
         cfg.phase3.elevation_margin,
     )
-    assert phase3 == (24000, 16, 200, 1.0, 35, 60, "sphere", 5.0) and cfg.reading.jitter == 1
+    assert phase3 == (24000, 0.5, 16, 200, 1.0, 35, 60, "sphere", 5.0) and cfg.reading.jitter == 1
     assert cfg.reading.max_side == 0  # its 72-px window read as it is
 
 

@@ -292,6 +292,9 @@ class Phase3Config:
     # The attacks' strength on those images each step: a faint watermark's decoder reads colour-shifted clean
     # renders as keys unless it has seen strong shifts (docs/experiments/).
     negative_strength: Strength = "medium"
+    # The share of each batch's renders, and of its negatives, read after a real attack (imaging's
+    # training_attacks: codecs, noise, colour, blur, warps), drawn once per image before the steps; 0: none.
+    attacked: float = 0.0
     reserve_min: float = 0.0  # minutes of the time budget kept for phase 3
 
     def __post_init__(self) -> None:
@@ -301,10 +304,11 @@ class Phase3Config:
             and self.batch >= 1
             and self.lr > 0
             and self.reserve_min >= 0
-            and self.lambda_clean >= 0,
+            and self.lambda_clean >= 0
+            and 0.0 <= self.attacked <= 1.0,
             "watermark.phase3.steps and views must be ≥ 0 (0 steps: no phase 3), batch ≥ 1, lr > 0, "
-            f"reserve_min ≥ 0 and lambda_clean ≥ 0; got {self.steps}, {self.views}, {self.batch}, "
-            f"{self.lr}, {self.reserve_min}, {self.lambda_clean}",
+            f"reserve_min ≥ 0, lambda_clean ≥ 0 and attacked in [0, 1]; got {self.steps}, {self.views}, "
+            f"{self.batch}, {self.lr}, {self.reserve_min}, {self.lambda_clean}, {self.attacked}",
         )
         _require(
             0 <= self.elevation_margin <= 90,

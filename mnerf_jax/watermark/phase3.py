@@ -9,8 +9,11 @@ decoder's weights alone on it: the message BCE and the key term of phase 2 on ev
 ``phase3_lambda_clean`` · BCE against the null word (``keys.null_message``, far from every key) on
 unwatermarked 8-bit images under attack (the training views' photographs, the clean model's renders of
 every view used, and a third as many images from outside the scene); half of the renders are rounded to 8
-bits as a saved PNG is, and the run's phase-2 augmentations apply to them when it has them. The field, and
-so the PSNR, does not change (results: docs/experiments/).
+bits as a saved PNG is, and the run's phase-2 augmentations apply to them when it has them. With
+``phase3.attacked`` that share of the renders and of the negatives is read after real attacks instead
+(codecs, noise, colour, blur, warps; ``imaging.training_attacks``), each image's drawn once when the set is
+rendered: no gradient passes through an image here, so the attacks need not be differentiable. The field,
+and so the PSNR, does not change (results: docs/experiments/).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from mnerf_jax.core import xla_cpu
 from mnerf_jax.core.watermark_config import AugmentConfig, ViewDensity, WatermarkConfig
 from mnerf_jax.data import trajectory
 from mnerf_jax.data.types import Cameras
-from mnerf_jax.imaging import augment, losses
+from mnerf_jax.imaging import augment, losses, training_attacks
 from mnerf_jax.reader import decoder as decoder_lib
 from mnerf_jax.reader import dwt, read_window
 from mnerf_jax.reader import keys as keys_lib
@@ -57,6 +60,7 @@ VIEWS_PER_CHUNK = 8
 # images alone reads photographs and textures as keys the longer it trains (docs/experiments/).
 GENERIC_PER_SCENE_NEGATIVE = 1 / 3
 GENERIC_SEED = 0x6E6E  # their draw: fixed, and apart from the false-claims measurement's
+ATTACK_STREAM = 0xA77  # the real attacks' draws (phase3.attacked), apart from the novel views' stream
 
 
 @flax.struct.dataclass
@@ -71,6 +75,9 @@ class RefitSet:
         in either layout: each step attacks them (:func:`negative_attacks`) before reading them.
       null: ``[L]`` 0/1, the word the negatives are decoded against (``keys.null_message`` of the keys).
       compact: the images are kept as their reads (:func:`keeps_reads_only`), not as images.
+      attacked: ``[N, V, S, S', 3]`` float16, what the decoder reads of each render after a real attack
+        (:func:`attacked_reads`), or None (``phase3.attacked`` 0).
+      attacked_negatives: ``[G, S, S', 3]`` float32, the same of each negative, or None.
     """
 
     renders: Any
@@ -78,6 +85,8 @@ class RefitSet:
     negatives: Any
     null: Any = None
     compact: bool = flax.struct.field(pytree_node=False, default=False)
+    attacked: Any = None
+    attacked_negatives: Any = None
 
 
 def negative_attacks(cfg: WatermarkConfig) -> AugmentConfig:
@@ -110,6 +119,17 @@ def reads_of(images: np.ndarray, cfg: WatermarkConfig) -> np.ndarray:
         for i in range(0, len(images), VIEWS_PER_CHUNK)
     ]
     return np.concatenate(parts)
+
+
+def attacked_reads(images: np.ndarray, cfg: WatermarkConfig, rng: np.random.Generator) -> np.ndarray:
+    """``[B, S, S', 3]`` float16 (half the memory; it holds an 8-bit level to 2.4e-4): what the decoder
+    reads (:func:`reads_of`) of each of ``images [B, H, W, 3]`` (float in [0, 1], or uint8) rounded to 8
+    bits and put through one or two real attacks drawn from ``rng`` (``imaging.training_attacks``), as a
+    verifier receives an image a platform has edited."""
+    if images.dtype != np.uint8:
+        images = np.round(np.clip(np.asarray(images, np.float32), 0.0, 1.0) * 255.0).astype(np.uint8)
+    attacked = training_attacks.random_attacks(images, rng)
+    return reads_of(attacked.astype(np.float32) / 255.0, cfg)[:, 0].astype(np.float16)
 
 
 @functools.cache
@@ -254,7 +274,9 @@ def render_refit_set(
     3]}``, when the caller has them (``sample_cache.every_id_renders``), so that only the novel views are
     rendered. ``depth_bounds``: the scene's (nearest, farthest) depth, which a forward-facing scene's novel
     views need (``Scene.depth_bounds``). ``render_more()`` is asked before each chunk of novel views after the
-    first (the time budget's share for them): False ends the set there."""
+    first (the time budget's share for them): False ends the set there. With ``phase3.attacked`` > 0 each
+    render and each negative is also kept as read after real attacks (:func:`attacked_reads`, drawn from
+    ``watermark.seed``)."""
 
     if clean_renders is not None and len(clean_renders) != len(cameras):
         raise ValueError(f"{len(clean_renders)} clean renders for {len(cameras)} training views")
@@ -284,7 +306,12 @@ def render_refit_set(
         dynamic_ncols=True,
     )
     tick = lambda _, rgb: bar.update(rgb.shape[-1] // 3)  # noqa: E731  (a view's renders: one per ID)
+    rng = np.random.default_rng(np.random.SeedSequence([int(cfg.seed), ATTACK_STREAM]))
+    attack = (lambda x: attacked_reads(x, cfg, rng)) if cfg.phase3.attacked else None  # noqa: E731
     parts = [] if training_renders is None else [{n: keep(r) for n, r in training_renders.items()}]
+    attacked = []
+    if attack is not None and training_renders is not None:
+        attacked.append({n: attack(r) for n, r in training_renders.items()})
     negatives = [keep_clean(ground_truth)]
     if clean_model is not None and clean_renders is not None:
         negatives.append(keep_clean(clean_renders))  # the training views' (sets[0]), given
@@ -298,6 +325,8 @@ def render_refit_set(
                 if novel or training_renders is None:
                     rendered = wm_run.render_every_id(run, cams, chunk, on_view=tick)
                     parts.append({n: keep(r) for n, r in rendered.items()})
+                    if attack is not None:
+                        attacked.append({n: attack(r) for n, r in rendered.items()})
                 if clean_model is not None and (novel or clean_renders is None):
                     negatives.append(keep_clean(np.stack(runs.render_views(clean_model, cams, chunk))))
     finally:
@@ -308,7 +337,21 @@ def render_refit_set(
     scene_negatives = np.concatenate(negatives)
     generic = generic_negatives(generic_count(len(scene_negatives)), *scene_negatives.shape[1:3])
     negatives_all = np.concatenate([scene_negatives, generic])
-    return RefitSet(renders.astype(np.float32), messages, negatives_all, null, compact)
+    attacked_renders = attacked_negatives = None
+    if attack is not None:
+        attacked_renders = np.stack(
+            [np.concatenate([part[n] for part in attacked]) for n in range(keys.num_ids)]
+        )
+        attacked_negatives = attack(negatives_all)
+    return RefitSet(
+        renders.astype(np.float32),
+        messages,
+        negatives_all,
+        null,
+        compact=compact,
+        attacked=attacked_renders,
+        attacked_negatives=attacked_negatives,
+    )
 
 
 def refit_rate(cfg: WatermarkConfig, step: Any, total: Any) -> jax.Array:
@@ -346,7 +389,8 @@ def make_refit_step(
     A batch: ``phase3_batch`` renders (ID and view uniform), each rounded to 8 bits with probability ½ and
     through the run's augmentations when phase 2 had them (``augment_prob > 0``), and a quarter as many
     negatives (8-bit) through :func:`negative_attacks`; then the read window, LL2 and the decoder (eval-mode
-    BatchNorm, as phase 2).
+    BatchNorm, as phase 2). With ``data.attacked``, each render and each negative is read after its real
+    attacks instead with probability ``phase3.attacked``.
     """
     batch = int(cfg.phase3.batch)
     n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.phase3.lambda_clean else 0
@@ -374,20 +418,30 @@ def make_refit_step(
         params: PyTree, opt_state: Any, key: jax.Array, data: RefitSet, index: Any, total: Any
     ) -> tuple[PyTree, Any, jax.Array]:
         k_id, k_view, k_neg, k_pos, k_clean = jax.random.split(key, 5)
+        k_att, k_att_neg = jax.random.split(jax.random.fold_in(key, ATTACK_STREAM))  # draws above unchanged
         n_ids, n_views = data.renders.shape[:2]
         ids = jax.random.randint(k_id, (batch,), 0, n_ids)
-        seen = prepare(
-            k_pos, data.renders[ids, jax.random.randint(k_view, (batch,), 0, n_views)], data.compact
-        )
+        views = jax.random.randint(k_view, (batch,), 0, n_views)
+        seen = prepare(k_pos, data.renders[ids, views], data.compact)
+        if data.attacked is not None:
+            use = jax.random.bernoulli(k_att, cfg.phase3.attacked, (batch, 1, 1, 1))
+            read = data.attacked[ids, views].astype(jnp.float32)
+            seen = jnp.where(use, dwt.ll2(read, cfg.reading.wavelet), seen)
         if n_neg:  # an empty batch would reach the augmentations' convolutions (a zero group count)
             if data.null is None:
                 raise ValueError("phase 3's negatives need the word they are read as (RefitSet.null)")
             null = data.null.astype(jnp.float32)
-            negatives = data.negatives[jax.random.randint(k_neg, (n_neg,), 0, data.negatives.shape[0])]
-            attacked = augment.configured_policy(k_clean, negatives.astype(jnp.float32) / 255.0, attacks)
+            drawn = jax.random.randint(k_neg, (n_neg,), 0, data.negatives.shape[0])
+            attacked = augment.configured_policy(
+                k_clean, data.negatives[drawn].astype(jnp.float32) / 255.0, attacks
+            )
             clean = dwt.ll2(
                 read_window.read_window(attacked, window, background, max_side=max_side), cfg.reading.wavelet
             )
+            if data.attacked_negatives is not None:
+                use = jax.random.bernoulli(k_att_neg, cfg.phase3.attacked, (n_neg, 1, 1, 1))
+                read = data.attacked_negatives[drawn].astype(jnp.float32)
+                clean = jnp.where(use, dwt.ll2(read, cfg.reading.wavelet), clean)
         messages = data.messages.astype(jnp.float32)
 
         def loss_fn(p: PyTree) -> jax.Array:
