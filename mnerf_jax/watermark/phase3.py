@@ -35,7 +35,7 @@ from mnerf_jax.core import xla_cpu
 from mnerf_jax.core.watermark_config import AugmentConfig, ViewDensity, WatermarkConfig
 from mnerf_jax.data import trajectory
 from mnerf_jax.data.types import Cameras
-from mnerf_jax.imaging import augment, losses, training_attacks
+from mnerf_jax.imaging import attacks, augment, losses, training_attacks
 from mnerf_jax.reader import decoder as decoder_lib
 from mnerf_jax.reader import dwt, read_window
 from mnerf_jax.reader import keys as keys_lib
@@ -127,7 +127,7 @@ def attacked_reads(images: np.ndarray, cfg: WatermarkConfig, rng: np.random.Gene
     bits and put through one or two real attacks drawn from ``rng`` (``imaging.training_attacks``), as a
     verifier receives an image a platform has edited."""
     if images.dtype != np.uint8:
-        images = np.round(np.clip(np.asarray(images, np.float32), 0.0, 1.0) * 255.0).astype(np.uint8)
+        images = attacks.to_uint8(np.asarray(images, np.float32))
     attacked = training_attacks.random_attacks(images, rng)
     return reads_of(attacked.astype(np.float32) / 255.0, cfg)[:, 0].astype(np.float16)
 
@@ -396,7 +396,7 @@ def make_refit_step(
     n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.phase3.lambda_clean else 0
     window, background, _, max_side = read_window.of_config(cfg.reading)  # phase 3 reads as phase 2
     tx = refit_optimizer(cfg)
-    attacks = negative_attacks(cfg)
+    negative_policy = negative_attacks(cfg)
 
     def prepare(key: jax.Array, images: jax.Array, compact: bool) -> jax.Array:
         k_round, k_aug = jax.random.split(key)
@@ -433,7 +433,7 @@ def make_refit_step(
             null = data.null.astype(jnp.float32)
             drawn = jax.random.randint(k_neg, (n_neg,), 0, data.negatives.shape[0])
             attacked = augment.configured_policy(
-                k_clean, data.negatives[drawn].astype(jnp.float32) / 255.0, attacks
+                k_clean, data.negatives[drawn].astype(jnp.float32) / 255.0, negative_policy
             )
             clean = dwt.ll2(
                 read_window.read_window(attacked, window, background, max_side=max_side), cfg.reading.wavelet
