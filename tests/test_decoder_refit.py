@@ -24,9 +24,9 @@ from mnerf_jax.reader import decoder as decoder_lib
 from mnerf_jax.reader import decoder_io, dwt, read_window
 from mnerf_jax.reader import keys as keys_lib
 from mnerf_jax.watermark import embed as E
+from mnerf_jax.watermark import novel_views, time_budget
 from mnerf_jax.watermark import phase3 as decoder_refit
 from mnerf_jax.watermark import run as wm_run
-from mnerf_jax.watermark import time_budget
 from mnerf_jax.watermark.step import phase_of
 
 if TYPE_CHECKING:
@@ -66,7 +66,7 @@ def test_novel_views_stay_within_the_cameras_ranges_and_look_at_their_focus(
     count: int, seed: int, density: str, margin: float
 ) -> None:
     cams = _ring_cameras()
-    novel = decoder_refit.novel_cameras(cams, count, seed, density, margin)
+    novel = novel_views.novel_cameras(cams, count, seed, density, margin)
     assert len(novel) == count and (novel.width, novel.height) == (cams.width, cams.height)
     if not count:
         return
@@ -83,7 +83,7 @@ def test_novel_views_stay_within_the_cameras_ranges_and_look_at_their_focus(
     forward = -novel.c2w[:, :, 2]
     np.testing.assert_allclose(np.sum(forward * (-pos / dist[:, None]), -1), 1.0, atol=1e-4)
     np.testing.assert_allclose(novel.c2w[:, 2, 0], 0.0, atol=1e-4)
-    again = decoder_refit.novel_cameras(cams, count, seed, density, margin)
+    again = novel_views.novel_cameras(cams, count, seed, density, margin)
     np.testing.assert_array_equal(novel.c2w, again.c2w)
     np.testing.assert_allclose(novel.fx, cams.fx[0])
 
@@ -98,7 +98,7 @@ def test_novel_views_spread_uniformly_in_elevation_or_over_the_spheres_area() ->
     quartiles = np.array([0.25, 0.5, 0.75])
 
     def elevations(density: str, margin: float) -> np.ndarray:
-        p = decoder_refit.novel_cameras(cams, 4000, 3, density, margin).c2w[:, :, 3].astype(np.float64)
+        p = novel_views.novel_cameras(cams, 4000, 3, density, margin).c2w[:, :, 3].astype(np.float64)
         return np.arcsin(p[:, 2] / np.linalg.norm(p, axis=-1))
 
     for margin in (0.0, 5.0):
@@ -110,7 +110,7 @@ def test_novel_views_spread_uniformly_in_elevation_or_over_the_spheres_area() ->
         np.testing.assert_allclose(np.quantile(area, quartiles), expected, atol=0.02)
         assert np.median(elevations("sphere", margin)) < np.median(flat) - 0.05  # nearer the horizon
     with pytest.raises(ValueError, match="density"):
-        decoder_refit.novel_cameras(cams, 3, 0, "cube")
+        novel_views.novel_cameras(cams, 3, 0, "cube")
 
 
 def test_novel_views_of_forward_facing_cameras_need_the_scenes_depth_bounds() -> None:
@@ -118,7 +118,7 @@ def test_novel_views_of_forward_facing_cameras_need_the_scenes_depth_bounds() ->
     # (tests/test_llff_ndc.py tests the poses).
     cams = dataclasses.replace(_ring_cameras(), ndc=NDCSpace(focal=40.0, width=32, height=32, near=1.0))
     with pytest.raises(ValueError, match="depth bounds"):
-        decoder_refit.novel_cameras(cams, 3, 0)
+        novel_views.novel_cameras(cams, 3, 0)
 
 
 def _two_class_set(bits: int = 8) -> tuple[decoder_refit.RefitSet, dict]:

@@ -19,7 +19,7 @@ from mnerf_jax.data import load_scene, trajectory
 from mnerf_jax.data.rays import camera_rays, ndc_rays, world_rays
 from mnerf_jax.data.types import Cameras, NDCSpace
 from mnerf_jax.watermark import embed as E
-from mnerf_jax.watermark import phase3
+from mnerf_jax.watermark import novel_views, phase3
 from mnerf_jax.watermark import run as wm_run
 
 DEPTHS = (1.0, 8.0)  # the synthetic cameras' (nearest, farthest) scene depth
@@ -62,7 +62,7 @@ def test_novel_ndc_views_lie_near_the_cameras_plane_and_look_forward(
     count: int, seed: int, cams_seed: int
 ) -> None:
     cams = _forward_cameras(seed=cams_seed)
-    novel = phase3.novel_cameras(cams, count, seed, "sphere", 5.0, depth_bounds=DEPTHS)
+    novel = novel_views.novel_cameras(cams, count, seed, "sphere", 5.0, depth_bounds=DEPTHS)
     assert len(novel) == count and (novel.width, novel.height) == (cams.width, cams.height)
     assert novel.ndc == cams.ndc  # their rays are mapped to NDC as the training rays are
     if not count:
@@ -86,7 +86,7 @@ def test_novel_ndc_views_lie_near_the_cameras_plane_and_look_forward(
         np.testing.assert_allclose(off_axis, 0.0, atol=1e-4)
         depth = (target - avg[:, 3]) @ -avg[:, 2]
         assert DEPTHS[0] * 0.9 - 1e-4 <= depth <= DEPTHS[1] * 5.0
-    again = phase3.novel_cameras(cams, count, seed, depth_bounds=DEPTHS)
+    again = novel_views.novel_cameras(cams, count, seed, depth_bounds=DEPTHS)
     np.testing.assert_array_equal(novel.c2w, again.c2w)  # seeded; density and margin do not apply
 
 
@@ -98,7 +98,7 @@ def test_novel_ndc_views_are_poses_of_the_render_path_with_ndc_rays() -> None:
     frames = trajectory.spiral_poses(c2w, DEPTHS, 12)
     angles = np.linspace(0.0, 2 * math.pi * trajectory.SPIRAL_ROTATIONS, 13)[:-1]
     np.testing.assert_allclose(trajectory.spiral_poses_at(c2w, DEPTHS, angles), frames, atol=1e-12)
-    novel = phase3.novel_cameras(cams, 3, 7, depth_bounds=DEPTHS)
+    novel = novel_views.novel_cameras(cams, 3, 7, depth_bounds=DEPTHS)
     o, d = camera_rays(novel, 1)
     wo, wd = world_rays(novel, 1, normalize=False)
     space = cams.ndc
@@ -108,9 +108,9 @@ def test_novel_ndc_views_are_poses_of_the_render_path_with_ndc_rays() -> None:
     np.testing.assert_allclose(o[:, 2], -1.0, atol=1e-5)  # NDC origins on the near plane
     assert not np.allclose(novel.c2w[0], novel.c2w[1])
     with pytest.raises(ValueError, match="depth bounds"):
-        phase3.novel_cameras(cams, 3, 0)
+        novel_views.novel_cameras(cams, 3, 0)
     with pytest.raises(ValueError, match="density"):
-        phase3.novel_cameras(cams, 3, 0, "cube", depth_bounds=DEPTHS)
+        novel_views.novel_cameras(cams, 3, 0, "cube", depth_bounds=DEPTHS)
 
 
 # ------------------------------------------------------------------ a tiny synthetic forward-facing scene
