@@ -75,7 +75,7 @@ class RefitSet:
       compact: the images are kept as their reads (:func:`keeps_reads_only`), not as images.
       attacked: ``[N, V, S, S', 3]`` float16, what the decoder reads of each render after a real attack
         (:func:`attacked_reads`), or None (``phase3.attacked`` 0).
-      attacked_negatives: ``[G, S, S', 3]`` float32, the same of each negative, or None.
+      attacked_negatives: ``[G, S, S', 3]`` float16, the same of each negative, or None.
     """
 
     renders: Any
@@ -110,8 +110,13 @@ def reads_of(images: np.ndarray, cfg: WatermarkConfig) -> np.ndarray:
     """``[B, 2, S, S', 3]`` float32: the read window (``reading.window`` at ``reading.max_side``) of each of
     ``images [B, H, W, 3]`` as it is (``[:, 0]``) and rounded to 8 bits first (``[:, 1]``), as phase 3's
     step reads an image of either kind; in chunks of :data:`VIEWS_PER_CHUNK` images."""
+    return _reads(images, cfg, with_rounded=True)
+
+
+def _reads(images: np.ndarray, cfg: WatermarkConfig, with_rounded: bool) -> np.ndarray:
+    """:func:`reads_of`, or (not ``with_rounded``) only the as-is reads ``[B, S, S', 3]``."""
     fraction, background, _, max_side = read_window.of_config(cfg.reading)
-    read = _window_reader(fraction, background, max_side)
+    read = _window_reader(fraction, background, max_side, with_rounded)
     parts = [
         np.asarray(read(jnp.asarray(images[i : i + VIEWS_PER_CHUNK], jnp.float32)))
         for i in range(0, len(images), VIEWS_PER_CHUNK)
@@ -127,15 +132,20 @@ def attacked_reads(images: np.ndarray, cfg: WatermarkConfig, rng: np.random.Gene
     if images.dtype != np.uint8:
         images = attacks.to_uint8(np.asarray(images, np.float32))
     attacked = training_attacks.random_attacks(images, rng)
-    return reads_of(attacked.astype(np.float32) / 255.0, cfg)[:, 0].astype(np.float16)
+    # 8-bit already: its rounded read would be the same.
+    return _reads(attacked.astype(np.float32) / 255.0, cfg, with_rounded=False).astype(np.float16)
 
 
 @functools.cache
-def _window_reader(fraction: float, background: float | None, side: int) -> Callable[[jax.Array], jax.Array]:
-    """:func:`reads_of`'s jitted step for one reading setting (``read_window.of_config``'s values)."""
+def _window_reader(
+    fraction: float, background: float | None, side: int, with_rounded: bool
+) -> Callable[[jax.Array], jax.Array]:
+    """:func:`_reads`' jitted step for one reading setting (``read_window.of_config``'s values)."""
 
     @jax.jit
     def read(images: jax.Array) -> jax.Array:
+        if not with_rounded:
+            return read_window.read_window(images, fraction, background, max_side=side)
         rounded = jnp.round(images * 255.0) / 255.0
         both = jnp.stack([images, rounded], axis=1)  # [B, 2, H, W, 3]
         flat = both.reshape(-1, *images.shape[1:])
@@ -320,16 +330,15 @@ def make_refit_step(
     negative_policy = negative_attacks(cfg)
 
     def prepare(key: jax.Array, images: jax.Array, compact: bool) -> jax.Array:
+        """The read windows ``[B, S, S', 3]`` of a batch of renders (before LL2)."""
         k_round, k_aug = jax.random.split(key)
         if compact:  # [B, 2, S, S', 3]: each image's read as it is and rounded (reads_of), drawn as below
             rounded = jax.random.bernoulli(k_round, 0.5, (images.shape[0],)).astype(jnp.int32)
-            return dwt.ll2(images[jnp.arange(images.shape[0]), rounded], cfg.reading.wavelet)
+            return images[jnp.arange(images.shape[0]), rounded]
         rounded = jnp.round(images * 255.0) / 255.0
         images = jnp.where(jax.random.bernoulli(k_round, 0.5, (images.shape[0], 1, 1, 1)), rounded, images)
         images = augment.configured_policy(k_aug, images, cfg.augment)
-        return dwt.ll2(
-            read_window.read_window(images, window, background, max_side=max_side), cfg.reading.wavelet
-        )
+        return read_window.read_window(images, window, background, max_side=max_side)
 
     def logits_of(params: PyTree, ll2: jax.Array) -> jax.Array:
         return decoder_lib.apply_ll2({**decoder_state, "params": params}, ll2)
@@ -344,10 +353,10 @@ def make_refit_step(
         ids = jax.random.randint(k_id, (batch,), 0, n_ids)
         views = jax.random.randint(k_view, (batch,), 0, n_views)
         seen = prepare(k_pos, data.renders[ids, views], data.compact)
-        if data.attacked is not None:
+        if data.attacked is not None:  # the reads are chosen before the one LL2 of the batch
             use = jax.random.bernoulli(k_att, cfg.phase3.attacked, (batch, 1, 1, 1))
-            read = data.attacked[ids, views].astype(jnp.float32)
-            seen = jnp.where(use, dwt.ll2(read, cfg.reading.wavelet), seen)
+            seen = jnp.where(use, data.attacked[ids, views].astype(jnp.float32), seen)
+        seen = dwt.ll2(seen, cfg.reading.wavelet)
         if n_neg:  # an empty batch would reach the augmentations' convolutions (a zero group count)
             if data.null is None:
                 raise ValueError("phase 3's negatives need the word they are read as (RefitSet.null)")
@@ -356,13 +365,11 @@ def make_refit_step(
             attacked = augment.configured_policy(
                 k_clean, data.negatives[drawn].astype(jnp.float32) / 255.0, negative_policy
             )
-            clean = dwt.ll2(
-                read_window.read_window(attacked, window, background, max_side=max_side), cfg.reading.wavelet
-            )
+            clean = read_window.read_window(attacked, window, background, max_side=max_side)
             if data.attacked_negatives is not None:
                 use = jax.random.bernoulli(k_att_neg, cfg.phase3.attacked, (n_neg, 1, 1, 1))
-                read = data.attacked_negatives[drawn].astype(jnp.float32)
-                clean = jnp.where(use, dwt.ll2(read, cfg.reading.wavelet), clean)
+                clean = jnp.where(use, data.attacked_negatives[drawn].astype(jnp.float32), clean)
+            clean = dwt.ll2(clean, cfg.reading.wavelet)
         messages = data.messages.astype(jnp.float32)
 
         def loss_fn(p: PyTree) -> jax.Array:
