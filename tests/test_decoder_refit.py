@@ -572,7 +572,9 @@ def test_phase_three_reads_its_attacked_copies_at_the_configured_share() -> None
         cfg = wm_config(
             phase3={"steps": 10, "batch": 8, "attacked": share}, augment_prob=0.0, read_window=1.0
         )
-        step = steps.setdefault(share, decoder_refit.make_refit_step(cfg, variables))
+        if share not in steps:
+            steps[share] = decoder_refit.make_refit_step(cfg, variables)
+        step = steps[share]
         opt_state = decoder_refit.refit_optimizer(cfg).init(variables["params"])
         arrays = jax.tree.map(jnp.asarray, d)
         return float(step(variables["params"], opt_state, jax.random.key(5), arrays, 0, 10)[2])
