@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 from conftest import PROJECT_ROOT, TINY_EMBED
 
-from mnerf_jax.study import grid, paper_numbers, results
+from mnerf_jax.study import cost, grid, paper_numbers, results
 from mnerf_jax.study.spec import StudySpecError, load_spec
 
 if TYPE_CHECKING:
@@ -88,6 +88,23 @@ def test_shards_are_disjoint_and_cover_every_cell(tmp_path: Path) -> None:
     for bad in ("3/3", "-1/2", "1", "a/b", "0/0"):
         with pytest.raises(Exception, match="--shard"):
             grid.parse_shard(bad)
+
+
+def test_shards_balance_the_estimated_cost(tmp_path: Path) -> None:
+    """The greedy longest-first rule: no shard exceeds another by more than the heaviest cell, and a cell
+    with more IDs per step (or more steps) weighs more; every shard gets its share of the cells."""
+    spec = load_spec(write_spec(tmp_path, SPEC))
+    cells = grid.expand(spec)
+    weights = cost.shard_weights(spec, cells)
+    assert set(weights) == {c.id for c in cells} and min(weights.values()) > 0
+    (n2,) = (weights[c.id] for c in cells if c.id.startswith("proc-multinerf-n2-b16-s0-"))
+    (n4,) = (weights[c.id] for c in cells if c.id.startswith("proc-multinerf-n4-b16-s0-"))
+    assert n4 > n2
+    for n in (2, 3, 4):
+        loads = [sum(weights[c.id] for c in grid.select(cells, (i, n), weights=weights)) for i in range(n)]
+        assert max(loads) - min(loads) <= max(weights.values()) + 1e-9
+        assert sum(loads) == pytest.approx(sum(weights.values()))
+    assert grid.assign_shards(cells, 3, weights) == grid.assign_shards(list(reversed(cells)), 3, weights)
 
 
 def test_only_selects_cells_by_glob(tmp_path: Path) -> None:

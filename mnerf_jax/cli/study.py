@@ -46,8 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--shard",
         metavar="I/N",
-        help="run shard I of N (0 ≤ I < N): the cells whose settings' hash is I modulo N; shards may "
-        "share DIR (a shard joins the study already there)",
+        help="run shard I of N (0 ≤ I < N): the N shards split the cells into groups of about equal "
+        "estimated cost; shards may share DIR (a shard joins the study already there)",
     )
     parser.add_argument(
         "--only",
@@ -183,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
         return report_only(spec, args)
     shard = grid.parse_shard(args.shard) if args.shard else None
     only = [p.strip() for item in args.only for p in item.split(",") if p.strip()]
-    cells = grid.select(grid.expand(spec), shard, only)
+    cells = runner.select_cells(spec, shard, only)
     if args.dry_run:
         if not cells:
             raise MnerfError(f"no cell of study {spec.name!r} is selected (--shard / --only)")

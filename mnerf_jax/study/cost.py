@@ -12,6 +12,10 @@ The model, in millions of pixels (Mpx; one pixel is one ray marched and coloured
 training image's header, or a nerfstudio file's ``w``, ``h``); the views, from the split's frame count where
 the layout tells it. A figure that cannot be read is left out (shown as ``?``). Dividing by a machine's
 measured pixel rate (``--rate``) turns the counts into hours.
+
+Shards balance a weight closer to time (``shard_weights``): an embedding step costs as if it rendered
+``STEP_OVERHEAD_IDS`` more IDs (the decoder's read, the optimiser and the ray marching the IDs share), an
+evaluated pixel ``EVAL_PIXEL_WEIGHT`` of an embedding's (no backward pass); the shared fit is left out.
 """
 
 from __future__ import annotations
@@ -24,8 +28,15 @@ from typing import Any
 from PIL import Image
 
 from mnerf_jax.core.config import Config
+from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.core.watermark_config import MAX_AUTO_IDS_PER_STEP
+from mnerf_jax.study import grid
 from mnerf_jax.study.grid import Cell
+from mnerf_jax.study.spec import StudySpec
+
+# Fitted to the seconds of the paper_cpu study's cells of 1 to 8 IDs (docs/results/paper_cpu/README.md).
+STEP_OVERHEAD_IDS = 34.0
+EVAL_PIXEL_WEIGHT = 4.0
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".PNG", ".JPEG")
 
@@ -131,3 +142,35 @@ def cell_mpx(cell: Cell, config: Config, shape: SceneShape, views: int) -> dict[
 
 def format_mpx(value: float | None) -> str:
     return "?" if value is None else f"{value:,.1f}"
+
+
+def cell_weight(cell: Cell, config: Config, shape: SceneShape, views: int) -> float | None:
+    """The cell's cost for balancing shards, in embedding pixel-equivalents (module docstring); None when
+    the image size is unknown."""
+    mpx = cell_mpx(cell, config, shape, views)
+    if mpx["embed"] is None:
+        return None
+    wm = config.watermark
+    per_step = wm.schedule.ids_per_step or min(cell.num_ids, MAX_AUTO_IDS_PER_STEP)
+    embed = mpx["embed"] * (per_step + STEP_OVERHEAD_IDS) / per_step
+    return embed + EVAL_PIXEL_WEIGHT * (mpx["evaluate"] or 0.0)
+
+
+def shard_weights(spec: StudySpec, cells: list[Cell]) -> dict[str, float]:
+    """Each cell's ``cell_weight`` (cell ID -> weight) for ``grid.assign_shards``; a cell whose cost cannot be
+    estimated (it cannot run, or its image size is unknown) weighs the mean of the others (1 if none can)."""
+    shapes: dict[str, tuple[Config, SceneShape]] = {}
+    weights: dict[str, float | None] = {}
+    for cell in cells:
+        key = grid.fit_id(cell.scene)
+        try:
+            if key not in shapes:
+                config = grid.fit_config(cell.scene)
+                shapes[key] = (config, scene_shape(config, cell.scene.data_path(), spec.measure.split))
+            config, shape = shapes[key]
+            weights[cell.id] = cell_weight(cell, grid.embed_config(cell, config), shape, spec.measure.views)
+        except MnerfError:
+            weights[cell.id] = None
+    known = [w for w in weights.values() if w is not None]
+    fallback = sum(known) / len(known) if known else 1.0
+    return {cid: fallback if w is None else w for cid, w in weights.items()}

@@ -4,8 +4,10 @@ A cell's ID is a readable slug and a short hash of the cell's settings,
 ``lego-multinerf-n16-b16-s0-1a2b3c4d``: the hash covers what the cell computes (the scene's fit settings,
 the method's variant, preset and overrides, the IDs, bits, seed and decoder), not the names, so an edited
 setting makes a new cell while an unchanged one keeps its folder across runs, spec edits and machines.
-Shards split the cells by that hash: cell ``c`` belongs to shard ``int(hash) mod N``, which is
-deterministic, disjoint and covering, and stays so when cells are added to the spec.
+Shards split the cells into N groups of about equal estimated cost (``study.cost.shard_weights``): the
+costliest cell first, each to the group with the least cost so far (ties by cell ID), which is
+deterministic, disjoint and covering. Adding cells to the spec can move others to another shard; shards
+that share one folder skip the cells already done whichever shard ran them.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import dataclasses
 import fnmatch
 import hashlib
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 from mnerf_jax.core import config as config_lib
@@ -101,17 +103,34 @@ def parse_shard(text: str) -> tuple[int, int]:
     return index, count
 
 
-def in_shard(cell: Cell, shard: tuple[int, int]) -> bool:
-    index, count = shard
-    return int(cell.hash, 16) % count == index
+def assign_shards(
+    cells: Sequence[Cell], count: int, weights: Mapping[str, float] | None = None
+) -> dict[str, int]:
+    """Each cell's shard (cell ID -> 0..count-1), balancing the summed ``weights`` (cell ID -> estimated
+    cost; None: every cell weighs 1): the greedy longest-first rule, the heaviest cell to the lightest shard,
+    ties broken by cell ID and then by the lower shard."""
+    loads = [0.0] * count
+    shards: dict[str, int] = {}
+    for cell in sorted(cells, key=lambda c: (-(1.0 if weights is None else weights[c.id]), c.id)):
+        index = min(range(count), key=lambda i: (loads[i], i))
+        shards[cell.id] = index
+        loads[index] += 1.0 if weights is None else weights[cell.id]
+    return shards
 
 
 def select(
-    cells: Sequence[Cell], shard: tuple[int, int] | None = None, only: Iterable[str] = ()
+    cells: Sequence[Cell],
+    shard: tuple[int, int] | None = None,
+    only: Iterable[str] = (),
+    weights: Mapping[str, float] | None = None,
 ) -> list[Cell]:
-    """The cells of ``shard`` whose IDs match one of the ``only`` globs (none: every cell)."""
+    """The cells of ``shard`` (assigned over every cell of ``cells`` by ``assign_shards`` with ``weights``)
+    whose IDs match one of the ``only`` globs (none: every cell), in ``cells``' order."""
     patterns = [p for p in only if p]
-    chosen = [c for c in cells if shard is None or in_shard(c, shard)]
+    chosen = list(cells)
+    if shard is not None:
+        assigned = assign_shards(cells, shard[1], weights)
+        chosen = [c for c in chosen if assigned[c.id] == shard[0]]
     if patterns:
         chosen = [c for c in chosen if any(fnmatch.fnmatchcase(c.id, p) for p in patterns)]
     return chosen

@@ -48,7 +48,7 @@ from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.evaluation import attacks as wm_attacks
 from mnerf_jax.evaluation import watermarked as wm_eval
 from mnerf_jax.reader import decoder_io
-from mnerf_jax.study import grid, results
+from mnerf_jax.study import cost, grid, results
 from mnerf_jax.study.spec import StudySpec
 from mnerf_jax.watermark import embed as wm_embed
 from mnerf_jax.watermark import run as wm_run
@@ -324,6 +324,13 @@ def prepare_study_dir(out: Path, spec: StudySpec, join: bool) -> None:
     )
 
 
+def select_cells(spec: StudySpec, shard: tuple[int, int] | None, only: Sequence[str]) -> list[grid.Cell]:
+    """The study's cells in ``shard`` (balanced by estimated cost over the whole grid) matching ``only``."""
+    cells = grid.expand(spec)
+    weights = cost.shard_weights(spec, cells) if shard is not None else None
+    return grid.select(cells, shard, only, weights)
+
+
 def run_study(
     spec: StudySpec,
     out: str | Path,
@@ -343,7 +350,7 @@ def run_study(
     status)`` is called after each cell ("done", "skipped", "failed").
     """
     out = Path(out)
-    cells = grid.select(grid.expand(spec), shard, only)
+    cells = select_cells(spec, shard, only)
     if not cells:
         raise StudyError(f"no cell of study {spec.name!r} is selected (--shard / --only)")
     prepare_study_dir(out, spec, join=resume or shard is not None)
