@@ -109,12 +109,13 @@ def assign_shards(
     """Each cell's shard (cell ID -> 0..count-1), balancing the summed ``weights`` (cell ID -> estimated
     cost; None: every cell weighs 1): the greedy longest-first rule, the heaviest cell to the lightest shard,
     ties broken by cell ID and then by the lower shard."""
+    weight = {c.id: 1.0 for c in cells} if weights is None else weights
     loads = [0.0] * count
     shards: dict[str, int] = {}
-    for cell in sorted(cells, key=lambda c: (-(1.0 if weights is None else weights[c.id]), c.id)):
+    for cell in sorted(cells, key=lambda c: (-weight[c.id], c.id)):
         index = min(range(count), key=lambda i: (loads[i], i))
         shards[cell.id] = index
-        loads[index] += 1.0 if weights is None else weights[cell.id]
+        loads[index] += weight[cell.id]
     return shards
 
 
