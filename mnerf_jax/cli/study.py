@@ -87,7 +87,8 @@ def dry_run(spec: Any, cells: list[Any], out: Path | None, rate: float | None) -
     from mnerf_jax.study import cost, grid, results, runner
 
     measure = spec.measure.to_dict()
-    fits: dict[str, tuple[Any, cost.SceneShape, float]] = {}
+    setups: dict[str, tuple[Any, cost.SceneShape]] = {}
+    fits: dict[str, float] = {}
     lines, totals = [], {"fit": 0.0, "embed": 0.0, "evaluate": 0.0}
     unknown = False
     width = max(len(c.id) for c in cells)
@@ -96,12 +97,10 @@ def dry_run(spec: Any, cells: list[Any], out: Path | None, rate: float | None) -
         key = grid.fit_id(cell.scene)
         note = ""
         try:
+            config, shape = cost.fit_setup(cell, spec.measure.split, setups)
             if key not in fits:
-                config = grid.fit_config(cell.scene)
-                shape = cost.scene_shape(config, cell.scene.data_path(), spec.measure.split)
                 done = out is not None and (out / results.FITS_DIR / key / runner.FIT_DONE).is_file()
-                fits[key] = (config, shape, cost.fit_mpx(config, cell.scene.fit is not None or done))
-            config, shape, _ = fits[key]
+                fits[key] = cost.fit_mpx(config, cell.scene.fit is not None or done)
             runner.check_decoder(spec, cell.bits)
             estimate = cost.cell_mpx(cell, grid.embed_config(cell, config), shape, spec.measure.views)
         except MnerfError as err:
@@ -117,7 +116,7 @@ def dry_run(spec: Any, cells: list[Any], out: Path | None, rate: float | None) -
             totals[part] += estimate[part] or 0.0
         embed, evaluate = cost.format_mpx(estimate["embed"]), cost.format_mpx(estimate["evaluate"])
         lines.append(f"{cell.id:<{width}}  {status:<8} {embed:>10} {evaluate:>9}  {note}".rstrip())
-    for key, (_, _, fit) in fits.items():
+    for key, fit in fits.items():
         totals["fit"] += fit
         if fit:
             lines.append(f"fit {key}: {cost.format_mpx(fit)} Mpx")

@@ -29,10 +29,10 @@ from PIL import Image
 
 from mnerf_jax.core.config import Config
 from mnerf_jax.core.errors import MnerfError
-from mnerf_jax.core.watermark_config import MAX_AUTO_IDS_PER_STEP
 from mnerf_jax.study import grid
 from mnerf_jax.study.grid import Cell
 from mnerf_jax.study.spec import StudySpec
+from mnerf_jax.watermark import model as watermark
 
 # Fitted to the seconds of the paper_cpu study's cells of 1 to 8 IDs (docs/results/paper_cpu/README.md).
 STEP_OVERHEAD_IDS = 34.0
@@ -127,7 +127,7 @@ def cell_mpx(cell: Cell, config: Config, shape: SceneShape, views: int) -> dict[
     (``views``: the spec's evaluated views, 0: all of the split)."""
     wm = config.watermark
     steps = wm.schedule.phase1_steps + wm.schedule.phase2_steps
-    per_step = wm.schedule.ids_per_step or min(cell.num_ids, MAX_AUTO_IDS_PER_STEP)
+    per_step = watermark.ids_per_step_of(wm, cell.num_ids)
     pixels = shape.pixels
     n_views = views or shape.views
     if views and shape.views is not None:
@@ -144,14 +144,25 @@ def format_mpx(value: float | None) -> str:
     return "?" if value is None else f"{value:,.1f}"
 
 
+def fit_setup(
+    cell: Cell, split: str, cache: dict[str, tuple[Config, SceneShape]]
+) -> tuple[Config, SceneShape]:
+    """The config the cell's scene is fitted with and its image size and ``split``'s views, kept in
+    ``cache`` per fit. MnerfError when the scene's preset cannot load."""
+    key = grid.fit_id(cell.scene)
+    if key not in cache:
+        config = grid.fit_config(cell.scene)
+        cache[key] = (config, scene_shape(config, cell.scene.data_path(), split))
+    return cache[key]
+
+
 def cell_weight(cell: Cell, config: Config, shape: SceneShape, views: int) -> float | None:
     """The cell's cost for balancing shards, in embedding pixel-equivalents (module docstring); None when
     the image size is unknown."""
     mpx = cell_mpx(cell, config, shape, views)
     if mpx["embed"] is None:
         return None
-    wm = config.watermark
-    per_step = wm.schedule.ids_per_step or min(cell.num_ids, MAX_AUTO_IDS_PER_STEP)
+    per_step = watermark.ids_per_step_of(config.watermark, cell.num_ids)
     embed = mpx["embed"] * (per_step + STEP_OVERHEAD_IDS) / per_step
     return embed + EVAL_PIXEL_WEIGHT * (mpx["evaluate"] or 0.0)
 
@@ -159,15 +170,11 @@ def cell_weight(cell: Cell, config: Config, shape: SceneShape, views: int) -> fl
 def shard_weights(spec: StudySpec, cells: list[Cell]) -> dict[str, float]:
     """Each cell's ``cell_weight`` (cell ID -> weight) for ``grid.assign_shards``; a cell whose cost cannot be
     estimated (it cannot run, or its image size is unknown) weighs the mean of the others (1 if none can)."""
-    shapes: dict[str, tuple[Config, SceneShape]] = {}
+    setups: dict[str, tuple[Config, SceneShape]] = {}
     weights: dict[str, float | None] = {}
     for cell in cells:
-        key = grid.fit_id(cell.scene)
         try:
-            if key not in shapes:
-                config = grid.fit_config(cell.scene)
-                shapes[key] = (config, scene_shape(config, cell.scene.data_path(), spec.measure.split))
-            config, shape = shapes[key]
+            config, shape = fit_setup(cell, spec.measure.split, setups)
             weights[cell.id] = cell_weight(cell, grid.embed_config(cell, config), shape, spec.measure.views)
         except MnerfError:
             weights[cell.id] = None
