@@ -692,20 +692,6 @@ def test_embed_refuses_bad_input_with_one_line(tiny: TinyRuns, tmp_path: Path, m
             [
                 *base,
                 "--out",
-                str(tmp_path / "o10"),
-                "--num-ids",
-                "2",
-                "--bits",
-                "8",
-                "--set",
-                "watermark.schedule.ids_per_step=3",
-            ],
-            "ids_per_step must be in [0, 2]",
-        ),
-        (
-            [
-                *base,
-                "--out",
                 str(tmp_path / "o11"),
                 "--num-ids",
                 "2",
@@ -857,6 +843,12 @@ def test_phases_and_step_choices_are_deterministic() -> None:
     assert all(len(set(p[0])) == 4 for p in many)
     counts = np.bincount(np.concatenate([p[0] for p in many]), minlength=16)
     assert counts.min() > 0.6 * 100 and counts.max() < 1.4 * 100
+    # ids_per_step is at most the run's IDs: with fewer, every ID renders on every step.
+    four = dataclasses.replace(
+        wm_config(), schedule=dataclasses.replace(wm_config().schedule, ids_per_step=4)
+    )
+    assert [watermark.ids_per_step_of(four, n) for n in (1, 2, 4, 16)] == [1, 2, 4, 4]
+    assert [watermark.ids_per_step_of(wm_config(), n) for n in (2, 16, 64)] == [2, 16, 16]
 
 
 def test_step_config_keeps_what_the_compiled_step_reads() -> None:

@@ -105,6 +105,28 @@ def test_shards_balance_the_estimated_cost(tmp_path: Path) -> None:
         assert max(loads) - min(loads) <= max(weights.values()) + 1e-9
         assert sum(loads) == pytest.approx(sum(weights.values()))
     assert grid.assign_shards(cells, 3, weights) == grid.assign_shards(list(reversed(cells)), 3, weights)
+    # An ID entering the first colour layer runs the whole MLP: the same cell weighs more.
+    uncached = SPEC.replace("watermark.module.wm_ranks=[2,2,2]", "watermark.schedule.cache_source=false")
+    by_variant = {}
+    for variant in ("no_grid", "waterf_mod"):
+        text = uncached.replace('"no_grid"\nids', f'"{variant}"\nids')
+        each = load_spec(write_spec(tmp_path / variant, text))
+        (by_variant[variant],) = (
+            w
+            for k, w in cost.shard_weights(each, grid.expand(each)).items()
+            if k.startswith("proc-no_grid-n16-") and "-s0-" in k
+        )
+    assert by_variant["waterf_mod"] > 2 * by_variant["no_grid"]
+
+
+def test_a_method_runs_on_the_scenes_it_names(tmp_path: Path) -> None:
+    text = SPEC.replace('set = ["watermark.module', 'scenes = ["proc_small"]\nset = ["watermark.module')
+    cells = grid.expand(load_spec(write_spec(tmp_path, text)))
+    assert len(cells) == 2 * 8 + 2
+    assert {c.scene.name for c in cells if c.method.name == "no_grid"} == {"proc_small"}
+    # The filter selects cells; it is not a setting of theirs (their IDs are those of the unfiltered spec).
+    every = {c.id for c in grid.expand(load_spec(write_spec(tmp_path / "all", SPEC)))}
+    assert {c.id for c in cells} <= every
 
 
 def test_only_selects_cells_by_glob(tmp_path: Path) -> None:
@@ -160,6 +182,10 @@ def test_only_selects_cells_by_glob(tmp_path: Path) -> None:
             r"measure\.attack_names: unknown",
         ),
         (("[[methods]]", '[decoders]\nx = "a.npz"\n\n[[methods]]'), r"decoders\.x: expected a bit length"),
+        (
+            ('variant = "no_grid"', 'variant = "no_grid"\nscenes = ["proc", "fern"]'),
+            r"methods\[1\]\.scenes: fern not among the \[\[scenes\]\] \(proc, proc_small\)",
+        ),
         (("[study]", "[study\n"), r"malformed TOML"),
     ],
 )
@@ -179,9 +205,9 @@ def test_the_studies_in_the_repository_parse(tmp_path: Path) -> None:
     counts = {
         p.stem: len(grid.expand(load_spec(p))) for p in sorted((PROJECT_ROOT / "studies").glob("*.toml"))
     }
-    # paper_cpu: one scene; paper_gpu: two; each 2 seeds × (7 + 7 capacity, 3 bit lengths, 4 ablations,
-    # 6 #WMCom, 3 single-message cells).
-    assert counts == {"paper_cpu": 60, "paper_gpu": 120, "smoke": 2}
+    # paper_gpu: two scenes, each 2 seeds × (7 + 7 capacity, 3 bit lengths, 4 ablations, 6 #WMCom, 3 single-
+    # message cells); paper_cpu: the same on lego, fern's 3 single-message cells only.
+    assert counts == {"paper_cpu": 66, "paper_gpu": 120, "smoke": 2}
     smoke = load_spec(PROJECT_ROOT / "studies" / "smoke.toml")
     assert smoke.scenes[0].preset == "procedural" and smoke.measure.attacks == ("low",)
     wmcom = [

@@ -308,6 +308,30 @@ def test_several_ids_at_once_equal_each_id_alone(variant: str) -> None:
         W.condition_many(params, ids, dataclasses.replace(cfg, variant="waterf"))
 
 
+@pytest.mark.parametrize("variant", ["early", "waterf_mod"])
+def test_several_ids_entering_the_first_layer_have_each_ids_gradient(variant: str) -> None:
+    # The K first-layer passes run one at a time and are recomputed backwards: the gradient of a loss on the
+    # [P, 3K] colours is the sum of each ID's gradient alone.
+    cfg, params = _strong_film(variant)
+    xyz, d = _points()
+    ids = (3, 0, 2)
+    weights = jax.random.normal(jax.random.PRNGKey(5), (xyz.shape[0], 3 * len(ids)))
+
+    def many_loss(p: dict) -> jax.Array:
+        return jnp.sum(weights * W.colour(p, W.condition_many(p, jnp.array(ids), cfg), xyz, d, MODEL, cfg))
+
+    def one_loss(p: dict, k: int) -> jax.Array:
+        rgb = W.colour(p, W.condition(p, ids[k], cfg), xyz, d, MODEL, cfg)
+        return jnp.sum(weights[:, 3 * k : 3 * k + 3] * rgb)
+
+    many = jax.grad(many_loss)(params)
+    alone = [jax.grad(one_loss)(params, k) for k in range(len(ids))]
+    summed = jax.tree.map(lambda *g: sum(g), *alone)
+    for got, want in zip(jax.tree.leaves(many), jax.tree.leaves(summed), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+    assert max(float(jnp.abs(g).max()) for g in jax.tree.leaves(many["wm"])) > 0
+
+
 @pytest.mark.parametrize("colour_budget", [None, 2 * render.COLOUR_CHUNK])
 def test_render_rays_with_several_ids_equals_one_render_per_id(colour_budget: int | None) -> None:
     # One geometry pass for K IDs: rgb [R, 3K] whose columns are the single-ID renders (background included),

@@ -81,7 +81,9 @@ class ScheduleConfig:
 
     phase1_steps: int = setting(-1, host=True)  # -1: by the number of IDs (model.phase_steps)
     phase2_steps: int = setting(-1, host=True)  # -1: by the number of IDs
-    ids_per_step: int = 0  # IDs rendered per step (one view); 0: every ID, at most 16; 1: the paper
+    ids_per_step: int = (
+        0  # IDs rendered per step (one view), at most the run's; 0: every ID, at most 16; 1: the paper
+    )
     patch_size: int = 64  # phase 2's deferred patch side in pixels; ≥ the view's side: one patch, no deferral
     jitter: bool = True  # jitter samples along rays while embedding, as TensoRF's training renders
     # Freeze the fitted TensoRF and cache its coloured samples of every training view (sample_cache.py);
@@ -364,11 +366,6 @@ class WatermarkConfig:
         _require(
             self.variant != "waterf" or n == 1,
             f"variant waterf embeds one message without an ID: use --num-ids 1 (got {n})",
-        )
-        _require(
-            self.schedule.ids_per_step <= n,
-            f"watermark.schedule.ids_per_step must be in [0, {n}] (0: every ID, at most "
-            f"{MAX_AUTO_IDS_PER_STEP}; {n} IDs), got {self.schedule.ids_per_step}",
         )
 
 

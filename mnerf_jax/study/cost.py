@@ -15,7 +15,9 @@ measured pixel rate (``--rate``) turns the counts into hours.
 
 Shards balance a weight closer to time (``shard_weights``): an embedding step costs as if it rendered
 ``STEP_OVERHEAD_IDS`` more IDs (the decoder's read, the optimiser and the ray marching the IDs share), an
-evaluated pixel ``EVAL_PIXEL_WEIGHT`` of an embedding's (no backward pass); the shared fit is left out.
+evaluated pixel ``EVAL_PIXEL_WEIGHT`` of an embedding's (no backward pass); an ID entering the first colour
+layer (``early``, ``waterf_mod``) ``FIRST_LAYER_ID_WEIGHT`` IDs of a last-layer variant (it runs the whole
+MLP on every sample, nothing shared and nothing cached); the shared fit is left out.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ from mnerf_jax.watermark import model as watermark
 # Fitted to the seconds of the paper_cpu study's cells of 1 to 8 IDs (docs/results/paper_cpu/README.md).
 STEP_OVERHEAD_IDS = 34.0
 EVAL_PIXEL_WEIGHT = 4.0
+# Fitted to a waterf_mod step of 16 IDs beside those cells' steps (docs/results/paper_cpu/README.md).
+FIRST_LAYER_ID_WEIGHT = 15.0
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".PNG", ".JPEG")
 
@@ -163,7 +167,8 @@ def cell_weight(cell: Cell, config: Config, shape: SceneShape, views: int) -> fl
     if mpx["embed"] is None:
         return None
     per_step = watermark.ids_per_step_of(config.watermark, cell.num_ids)
-    embed = mpx["embed"] * (per_step + STEP_OVERHEAD_IDS) / per_step
+    id_weight = FIRST_LAYER_ID_WEIGHT if watermark.injection(config.watermark) == "first" else 1.0
+    embed = mpx["embed"] * (id_weight * per_step + STEP_OVERHEAD_IDS) / per_step
     return embed + EVAL_PIXEL_WEIGHT * (mpx["evaluate"] or 0.0)
 
 

@@ -77,12 +77,13 @@ class Cell:
 
 
 def expand(spec: StudySpec) -> list[Cell]:
-    """Every cell, in spec order: scenes, then methods, then IDs, bits and seeds (a method's own axes
-    replace the study's)."""
+    """Every cell, in spec order: scenes, then the methods that run on the scene, then IDs, bits and seeds
+    (a method's own axes replace the study's)."""
     return [
         Cell(scene, method, n, bits, seed, spec.decoder_for(bits))
         for scene in spec.scenes
         for method in spec.methods
+        if method.runs_on(scene.name)
         for n in method.ids or spec.ids
         for bits in method.bits or spec.bits
         for seed in spec.seeds

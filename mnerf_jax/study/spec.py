@@ -40,6 +40,7 @@ key (``StudySpecError``), before anything runs. The layout, with every key::
     set = []                    # watermark.* overrides
     ids = [16]                  # this method's own axes instead of the study's (optional)
     bits = [16]
+    scenes = ["lego"]           # the scenes it runs on (optional; default: every scene)
 """
 
 from __future__ import annotations
@@ -115,7 +116,11 @@ class MethodSpec:
     set: tuple[str, ...] = ()
     ids: tuple[int, ...] = ()  # empty: the study's
     bits: tuple[int, ...] = ()
+    scenes: tuple[str, ...] = ()  # the scenes it runs on (empty: every scene); not a setting of its cells
     base: Path = Path(".")  # the spec's folder: a preset given as a TOML path starts there
+
+    def runs_on(self, scene: str) -> bool:
+        return not self.scenes or scene in self.scenes
 
     def preset_ref(self) -> str | None:
         """The preset as ``config.load_preset`` takes it (None: the fit's ``[watermark]`` section)."""
@@ -331,7 +336,7 @@ def _watermark_items(t: _Table, key: str = "set") -> tuple[str, ...]:
 
 
 def _method(values: Any, where: str, base: Path, common: tuple[str, ...]) -> MethodSpec:
-    t = _Table(values, where, ("name", "variant", "preset", "set", "ids", "bits"))
+    t = _Table(values, where, ("name", "variant", "preset", "set", "ids", "bits", "scenes"))
     method = MethodSpec(
         name=t.name(),
         variant=t.choice("variant", None, get_args(Variant)),
@@ -339,6 +344,7 @@ def _method(values: Any, where: str, base: Path, common: tuple[str, ...]) -> Met
         set=(*common, *_watermark_items(t)),
         ids=t.ints("ids", minimum=1),
         bits=t.ints("bits", minimum=1),
+        scenes=t.strs("scenes"),
         base=base,
     )
     try:
@@ -402,6 +408,14 @@ def parse_spec(values: Mapping[str, Any], path: Path) -> StudySpec:
     methods = tuple(_method(v, f"methods[{i}]", base, common) for i, v in enumerate(values["methods"]))
     _unique([s.name for s in scenes], "scenes")
     _unique([m.name for m in methods], "methods")
+    scene_names = [s.name for s in scenes]
+    for i, method in enumerate(methods):
+        unknown = [name for name in method.scenes if name not in scene_names]
+        if unknown:
+            raise StudySpecError(
+                f"methods[{i}].scenes: {', '.join(unknown)} not among the [[scenes]] "
+                f"({', '.join(scene_names)})"
+            )
     return StudySpec(
         name=study.name(),
         ids=study.ints("ids", minimum=1, required=True),

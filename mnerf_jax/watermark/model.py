@@ -94,10 +94,10 @@ def injection(cfg: WatermarkConfig) -> str | None:
 
 
 def ids_per_step_of(cfg: WatermarkConfig, num_ids: int | None = None) -> int:
-    """``K``, the IDs an embedding step renders: ``cfg.schedule.ids_per_step``, or for 0 every ID up to
-    :data:`MAX_AUTO_IDS_PER_STEP`."""
+    """``K``, the IDs an embedding step renders: ``cfg.schedule.ids_per_step`` (every ID when there are
+    fewer), or for 0 every ID up to :data:`MAX_AUTO_IDS_PER_STEP`."""
     n = cfg.num_ids if num_ids is None else int(num_ids)
-    return int(cfg.schedule.ids_per_step) if cfg.schedule.ids_per_step > 0 else min(n, MAX_AUTO_IDS_PER_STEP)
+    return min(n, int(cfg.schedule.ids_per_step) if cfg.schedule.ids_per_step > 0 else MAX_AUTO_IDS_PER_STEP)
 
 
 # Steps per ID of the automatic schedule (watermark.schedule.phase1_steps / phase2_steps = -1), for at least
@@ -339,11 +339,17 @@ def colour(
     """Watermarked colour ``[P, 3]`` at normalised ``xyz [P, 3]`` along unit ``viewdirs [P, 3]``;
     ``[P, 3K]`` for a :func:`condition_many` cond of K IDs."""
     where = injection(cfg)
-    if where == "first" and is_multi(cond):
-        # The ID enters the first layer: nothing after it is shared, so the K colours are K passes.
-        rgb = jax.vmap(lambda c: colour(params, c, xyz, viewdirs, model_cfg, cfg))(cond)  # [K, P, 3]
-        return jnp.moveaxis(rgb, 0, 1).reshape(xyz.shape[0], -1)
     features = field.appearance_features(params, xyz)
+    if where == "first" and is_multi(cond):
+        # The ID enters the first layer, so the K colours are K MLP passes. They run one at a time and are
+        # recomputed in the backward pass (lax.map of a checkpointed pass): the memory of one ID's pass
+        # whatever K, the same values and gradient as K passes side by side.
+        def one_id(c: Any) -> Array:
+            extra = extra_features(params, c, xyz, cfg)
+            return field.colour_mlp(params["mlp"], features, viewdirs, model_cfg, extra_first=extra)
+
+        rgb = jax.lax.map(jax.checkpoint(one_id), cond)  # [K, P, 3]
+        return jnp.moveaxis(rgb, 0, 1).reshape(xyz.shape[0], -1)
     if where == "last" and uses_film(cfg) and is_multi(cond):
         logits = film_logits(params, cond, xyz, cfg)
         return field.colour_mlp(params["mlp"], features, viewdirs, model_cfg, extra_logits=logits)
