@@ -205,9 +205,9 @@ def test_the_studies_in_the_repository_parse(tmp_path: Path) -> None:
     counts = {
         p.stem: len(grid.expand(load_spec(p))) for p in sorted((PROJECT_ROOT / "studies").glob("*.toml"))
     }
-    # paper_gpu: two scenes, each 2 seeds × (7 + 7 capacity, 3 bit lengths, 4 ablations, 6 #WMCom, 3 single-
+    # paper_gpu: two scenes, each 2 seeds × (7 + 7 capacity, 3 bit lengths, 6 ablations, 6 #WMCom, 3 single-
     # message cells); paper_cpu: the same on lego, fern's 3 single-message cells only.
-    assert counts == {"paper_cpu": 66, "paper_gpu": 120, "smoke": 2}
+    assert counts == {"paper_cpu": 70, "paper_gpu": 128, "smoke": 2}
     smoke = load_spec(PROJECT_ROOT / "studies" / "smoke.toml")
     assert smoke.scenes[0].preset == "procedural" and smoke.measure.attacks == ("low",)
     wmcom = [

@@ -122,7 +122,7 @@ def test_the_report_holds_every_table_with_its_seeds_and_the_papers_figures(tmp_
 
     # The ablation: every row of the paper's table, ours beside, the failed no_film shown as missing.
     ablation = text.split("## Ablation", 1)[1].split("## #WMCom", 1)[0]
-    assert "| MN(-FiLM)(-GRID) | not implemented here | — | 66.3 |" in ablation
+    assert "| MN(-FiLM)(-GRID) | not in this study | — | 66.3 |" in ablation
     no_film = table_row(ablation, "### lego", "MN(-FiLM)")
     assert no_film[1].startswith("`no_film`") and no_film[2] == "—" and no_film[3] == "70.0"
     no_grid = table_row(ablation, "### lego", "MN(-GRID)(+MLP)")

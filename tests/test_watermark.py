@@ -106,6 +106,8 @@ def test_film_is_per_id_from_the_start() -> None:
         ("no_film", "out_extra", 24 + 16),
         ("early", "in_extra", 24),
         ("waterf_mod", "in_extra", 16),
+        ("appearance_film", "out_extra", 8),  # the field's appearance features (MODEL)
+        ("appearance_concat", "out_extra", 8 + 16),
     ],
 )
 def test_variant_structure(variant: str, where: str, width: int) -> None:
@@ -113,11 +115,12 @@ def test_variant_structure(variant: str, where: str, width: int) -> None:
     params = _params(cfg)
     assert params["mlp"][where].shape[0] == width
     assert ("grid" in params["wm"]) == (variant in ("multinerf", "frozen_geometry", "no_film", "early"))
-    assert ("mod" in params["wm"]) == (variant in ("multinerf", "frozen_geometry", "no_grid", "early"))
+    film = ("multinerf", "frozen_geometry", "no_grid", "early", "appearance_film")
+    assert ("mod" in params["wm"]) == (variant in film)
     if "grid" in params["wm"]:
         assert grids.vm_resolution(params["wm"]["grid"]) == RES
         assert grids.vm_ranks(params["wm"]["grid"]) == (8, 8, 8)
-    assert W.trains_density(cfg) == (variant != "frozen_geometry")
+    assert W.trains_source(cfg) == (variant != "frozen_geometry")
     assert W.watermark_param_count(params) > 0
 
 

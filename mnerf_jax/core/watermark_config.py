@@ -16,7 +16,17 @@ from typing import Any, Literal, get_args, get_origin, get_type_hints
 
 from mnerf_jax.core.errors import ConfigError, MnerfError
 
-Variant = Literal["multinerf", "no_grid", "no_film", "frozen_geometry", "early", "waterf", "waterf_mod"]
+Variant = Literal[
+    "multinerf",
+    "no_grid",
+    "no_film",
+    "frozen_geometry",
+    "early",
+    "appearance_film",
+    "appearance_concat",
+    "waterf",
+    "waterf_mod",
+]
 Perceptual = Literal["watson", "vgg"]
 CleanNegative = Literal["ground_truth", "clean_model"]
 Strength = Literal["low", "medium", "high"]

@@ -44,10 +44,20 @@ VARIANT_LABELS = {
     "waterf": "WateRF",
     "no_grid": "MN(-GRID)(+MLP)",
     "no_film": "MN(-FiLM)",
+    "appearance_film": "MN(-GRID)",
+    "appearance_concat": "MN(-FiLM)(-GRID)",
     "frozen_geometry": "MN G_σ frozen",
     "early": "MN(+EARLY)",
 }
-ABLATION_VARIANTS = ("multinerf", "no_grid", "no_film", "frozen_geometry", "early")
+ABLATION_VARIANTS = (
+    "multinerf",
+    "no_grid",
+    "appearance_concat",
+    "no_film",
+    "frozen_geometry",
+    "early",
+    "appearance_film",
+)
 ABLATION_TABLE = "tab:ablation"
 # column -> (header, format)
 METRICS: dict[str, tuple[str, str]] = {

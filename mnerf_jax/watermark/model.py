@@ -31,8 +31,12 @@ Variants (``WatermarkConfig.variant``), the configurations the paper compares:
 multinerf      grid + Emb + FiLM into the last MLP layer (the method)
 no_grid        -GRID(+MLP): a small MLP on the encoded position replaces the grid; FiLM, last layer
 no_film        -FiLM: ``[w(x), e_n]`` concatenated (no modulation) into the last layer
-frozen_geometry as multinerf, but the density grid is not trained
+frozen_geometry as multinerf, but the fitted field (geometry and appearance) is not trained: the paper's
+               G_σ frozen, where only the watermark module learns
 early          +EARLY: ``w'(x)`` enters the first MLP layer (``in_extra``)
+appearance_film -GRID: no watermark grid nor position MLP; FiLM modulates the appearance features
+               ``G_c(x)`` (the field's own, ``app_features`` channels), last layer
+appearance_concat -FiLM(-GRID): ``[G_c(x), e_n]`` concatenated (no modulation) into the last layer
 waterf         WateRF: one message, no ID, no watermark module; the TensoRF itself is fine-tuned
 waterf_mod     WateRF-modified: WateRF plus ``e_n`` fed to the first MLP layer
 ============== =========================================================================================
@@ -58,7 +62,10 @@ Params = dict
 
 VARIANTS = get_args(Variant)
 _GRID_VARIANTS = ("multinerf", "no_film", "frozen_geometry", "early")
-_FILM_VARIANTS = ("multinerf", "no_grid", "frozen_geometry", "early")
+_FILM_VARIANTS = ("multinerf", "no_grid", "frozen_geometry", "early", "appearance_film")
+# The paper's -GRID ablations without a replacement MLP: the ID acts on the field's appearance features.
+_APPEARANCE_VARIANTS = ("appearance_film", "appearance_concat")
+_CONCAT_VARIANTS = ("no_film", "appearance_concat")
 # Frequencies of the position encoding that feeds the no_grid variant's MLP.
 POS_FREQS = 6
 POS_HIDDEN = 64
@@ -117,24 +124,26 @@ def phase_steps(cfg: WatermarkConfig, num_ids: int | None = None) -> tuple[int, 
     return p1, p2
 
 
-def wm_channels(cfg: WatermarkConfig) -> int:
-    """``C``: watermark feature channels (``Σ wm_ranks``, 24 by default)."""
-    return int(sum(cfg.module.wm_ranks))
+def wm_channels(cfg: WatermarkConfig, app_features: int) -> int:
+    """``C``: watermark feature channels: ``Σ wm_ranks`` (24 by default), or for the appearance variants
+    the field's ``app_features``."""
+    return int(app_features) if cfg.variant in _APPEARANCE_VARIANTS else int(sum(cfg.module.wm_ranks))
 
 
-def extra_width(cfg: WatermarkConfig) -> int:
+def extra_width(cfg: WatermarkConfig, app_features: int) -> int:
     """Width ``X`` of the features the colour MLP receives (rows of ``out_extra`` / ``in_extra``)."""
     if cfg.variant == "waterf":
         return 0
     if cfg.variant == "waterf_mod":
         return cfg.module.emb_dim
-    if cfg.variant == "no_film":
-        return wm_channels(cfg) + cfg.module.emb_dim
-    return wm_channels(cfg)
+    if cfg.variant in _CONCAT_VARIANTS:
+        return wm_channels(cfg, app_features) + cfg.module.emb_dim
+    return wm_channels(cfg, app_features)
 
 
-def trains_density(cfg: WatermarkConfig) -> bool:
-    """False for frozen_geometry and a cached source: the density grid keeps the fitted values."""
+def trains_source(cfg: WatermarkConfig) -> bool:
+    """False for frozen_geometry and a cached source: the fitted field (density and appearance grids, basis,
+    MLP) keeps its values and only the watermark module learns."""
     return cfg.variant != "frozen_geometry" and not cfg.schedule.cache_source
 
 
@@ -155,6 +164,7 @@ def init_watermark(
     cfg: WatermarkConfig,
     num_ids: int,
     resolution: tuple[int, int, int],
+    app_features: int,
     grid_scale: float = 0.1,
     mod_scale: float = 1.0,
 ) -> Params:
@@ -165,13 +175,14 @@ def init_watermark(
       cfg: watermark config (variant, ranks, embedding sizes).
       num_ids: ``N``, the one-hot width of ``Emb``.
       resolution: grid nodes ``(X, Y, Z)``, the same as the field's density and appearance grids.
+      app_features: the field's appearance feature channels (what the appearance variants modulate).
       grid_scale: std of the watermark grid factors (TensoRF's 0.1).
       mod_scale: ``Mod`` starts at this times torch's default init ``U(±1/√emb_dim)``.
     """
     cfg.check_ids(num_ids)
     k_grid, k_pos0, k_pos1, k_emb0, k_emb1, k_mod = jax.random.split(key, 6)
     wm: Params = {}
-    c = wm_channels(cfg)
+    c = wm_channels(cfg, app_features)
     if uses_grid(cfg):
         wm["grid"] = grids.init_vm(k_grid, resolution, cfg.module.wm_ranks, grid_scale)
     if cfg.variant == "no_grid":
@@ -204,7 +215,8 @@ def add_watermark(
     resolution = grids.vm_resolution(field_params["density"])
     params = dict(field_params)
     mlp = {k: v for k, v in field_params["mlp"].items() if k not in ("out_extra", "in_extra")}
-    width = extra_width(cfg)
+    app_features = int(field_params["basis"].shape[-1])
+    width = extra_width(cfg, app_features)
     where = injection(cfg)
     if where == "last":
         mlp["out_extra"] = extra_scale * jax.random.normal(k_extra, (width, 3), jnp.float32)
@@ -212,7 +224,7 @@ def add_watermark(
         hidden = int(field_params["mlp"]["w0"].shape[1])
         mlp["in_extra"] = extra_scale * jax.random.normal(k_extra, (width, hidden), jnp.float32)
     params["mlp"] = mlp
-    params["wm"] = init_watermark(k_wm, cfg, num_ids, resolution)
+    params["wm"] = init_watermark(k_wm, cfg, num_ids, resolution, app_features)
     return params
 
 
@@ -252,7 +264,8 @@ def film(wm: Params, e: Array) -> tuple[Array, Array]:
 def condition(params: Params, index: Array | int, cfg: WatermarkConfig) -> Any:
     """The renderer's ``cond`` for ID ``index``, computed once per image.
 
-    FiLM variants: ``{"gamma": [C], "beta": [C]}``; no_film and waterf_mod: ``{"emb": [E]}``; waterf: None.
+    FiLM variants: ``{"gamma": [C], "beta": [C]}``; the concatenating variants and waterf_mod:
+    ``{"emb": [E]}``; waterf: None.
     """
     if not uses_ids(cfg):
         return None
@@ -290,7 +303,9 @@ def position_features(pos_mlp: Params, xyz: Array) -> Array:
 
 
 def raw_features(params: Params, xyz: Array, cfg: WatermarkConfig) -> Array:
-    """``w(x) [P, C]`` at normalised points ``xyz [P, 3]`` (grid or position MLP)."""
+    """``w(x) [P, C]`` at normalised points ``xyz [P, 3]`` (grid, position MLP or appearance features)."""
+    if cfg.variant in _APPEARANCE_VARIANTS:
+        return field.appearance_features(params, xyz)
     if uses_grid(cfg):
         return grids.sample_vm(params["wm"]["grid"], xyz)
     return position_features(params["wm"]["pos_mlp"], xyz)
@@ -312,7 +327,7 @@ def extra_features(params: Params, cond: Any, xyz: Array, cfg: WatermarkConfig) 
     w = raw_features(params, xyz, cfg)
     if multi:
         w = w[:, None]
-    if cfg.variant == "no_film":
+    if cfg.variant in _CONCAT_VARIANTS:
         emb = jnp.broadcast_to(cond["emb"], (*lead, cond["emb"].shape[-1]))
         return jnp.concatenate([jnp.broadcast_to(w, (*lead, w.shape[-1])), emb], -1)
     return cond["gamma"] * w + cond["beta"]

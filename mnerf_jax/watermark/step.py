@@ -102,11 +102,10 @@ def param_labels(tree: PyTree, cfg: WatermarkConfig) -> PyTree:
     factors (``lr_grid · lr_source_scale``); ``embedding``: Emb and Mod (``lr_embedding``: each ID's row of
     Emb only learns on the steps that draw that ID); ``network``: the MLP's extra rows and the position MLP
     (``lr_network``); ``source_network``: the fitted basis and MLP (``lr_network · lr_source_scale``);
-    ``decoder`` (``lr_decoder``); ``frozen``: the density grid of the frozen_geometry variant, and the
-    whole fitted field with ``cache_source``.
+    ``decoder`` (``lr_decoder``); ``frozen``: the whole fitted field of the frozen_geometry variant or with
+    ``cache_source`` (the field is cached, so it cannot change).
     """
-    density_label = "source_grid" if watermark.trains_density(cfg) else "frozen"
-    frozen = cfg.schedule.cache_source  # the fitted field is cached, so it cannot change
+    frozen = not watermark.trains_source(cfg)
     grid_label = "frozen" if frozen else "source_grid"
     network_label = "frozen" if frozen else "source_network"
 
@@ -116,9 +115,7 @@ def param_labels(tree: PyTree, cfg: WatermarkConfig) -> PyTree:
         second = names[1] if len(names) > 1 else None
         if top == "wm":
             return "embedding" if second in ("emb", "mod") else "grid" if second == "grid" else "network"
-        if top == "density":
-            return density_label
-        if top == "appearance":
+        if top in ("density", "appearance"):
             return grid_label
         if top == "mlp" and second in ("out_extra", "in_extra"):
             return "network"
