@@ -302,16 +302,19 @@ def position_features(pos_mlp: Params, xyz: Array) -> Array:
     return h @ pos_mlp["w1"] + pos_mlp["b1"]
 
 
-def raw_features(params: Params, xyz: Array, cfg: WatermarkConfig) -> Array:
-    """``w(x) [P, C]`` at normalised points ``xyz [P, 3]`` (grid, position MLP or appearance features)."""
+def raw_features(params: Params, xyz: Array, cfg: WatermarkConfig, appearance: Array | None = None) -> Array:
+    """``w(x) [P, C]`` at normalised points ``xyz [P, 3]`` (grid, position MLP or appearance features;
+    ``appearance``: the field's appearance features at ``xyz`` where the caller has them already)."""
     if cfg.variant in _APPEARANCE_VARIANTS:
-        return field.appearance_features(params, xyz)
+        return field.appearance_features(params, xyz) if appearance is None else appearance
     if uses_grid(cfg):
         return grids.sample_vm(params["wm"]["grid"], xyz)
     return position_features(params["wm"]["pos_mlp"], xyz)
 
 
-def extra_features(params: Params, cond: Any, xyz: Array, cfg: WatermarkConfig) -> Array | None:
+def extra_features(
+    params: Params, cond: Any, xyz: Array, cfg: WatermarkConfig, appearance: Array | None = None
+) -> Array | None:
     """The features ``[P, X]`` the colour MLP receives for ``cond`` at ``xyz [P, 3]`` (None for waterf);
     ``[P, K, X]`` for a :func:`condition_many` cond (``w(x)`` sampled once for the K IDs)."""
     if cfg.variant == "waterf":
@@ -324,7 +327,7 @@ def extra_features(params: Params, cond: Any, xyz: Array, cfg: WatermarkConfig) 
         cond = jax.tree.map(lambda a: a[None], cond)
     if cfg.variant == "waterf_mod":
         return jnp.broadcast_to(cond["emb"], (*lead, cond["emb"].shape[-1]))
-    w = raw_features(params, xyz, cfg)
+    w = raw_features(params, xyz, cfg, appearance)
     if multi:
         w = w[:, None]
     if cfg.variant in _CONCAT_VARIANTS:
@@ -333,14 +336,16 @@ def extra_features(params: Params, cond: Any, xyz: Array, cfg: WatermarkConfig) 
     return cond["gamma"] * w + cond["beta"]
 
 
-def film_logits(params: Params, cond: Any, xyz: Array, cfg: WatermarkConfig) -> Array:
+def film_logits(
+    params: Params, cond: Any, xyz: Array, cfg: WatermarkConfig, appearance: Array | None = None
+) -> Array:
     """What the FiLM features of K IDs add to the last colour layer: ``[P, K, 3]`` for a
     :func:`condition_many` cond, at normalised ``xyz [P, 3]``.
 
     ``(γ_k ⊙ w + β_k) · E = w · (diag(γ_k) E) + β_k · E``: one ``[P, C] @ [C, 3K]`` product instead of the
     ``[P, K, C]`` features of :func:`extra_features` and their cotangent (K times the memory, each way).
     """
-    w = raw_features(params, xyz, cfg)  # [P, C]
+    w = raw_features(params, xyz, cfg, appearance)  # [P, C]
     out_extra = params["mlp"]["out_extra"]  # [C, 3]
     gamma, beta = cond["gamma"], cond["beta"]  # [K, C]
     k, c = gamma.shape
@@ -360,15 +365,15 @@ def colour(
         # recomputed in the backward pass (lax.map of a checkpointed pass): the memory of one ID's pass
         # whatever K, the same values and gradient as K passes side by side.
         def one_id(c: Any) -> Array:
-            extra = extra_features(params, c, xyz, cfg)
+            extra = extra_features(params, c, xyz, cfg, features)
             return field.colour_mlp(params["mlp"], features, viewdirs, model_cfg, extra_first=extra)
 
         rgb = jax.lax.map(jax.checkpoint(one_id), cond)  # [K, P, 3]
         return jnp.moveaxis(rgb, 0, 1).reshape(xyz.shape[0], -1)
     if where == "last" and uses_film(cfg) and is_multi(cond):
-        logits = film_logits(params, cond, xyz, cfg)
+        logits = film_logits(params, cond, xyz, cfg, features)
         return field.colour_mlp(params["mlp"], features, viewdirs, model_cfg, extra_logits=logits)
-    extra = extra_features(params, cond, xyz, cfg)
+    extra = extra_features(params, cond, xyz, cfg, features)
     return field.colour_mlp(
         params["mlp"],
         features,
