@@ -10,6 +10,8 @@ import sys
 from pathlib import Path
 from types import ModuleType
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -40,7 +42,9 @@ def test_growth_exponents_are_log_log_slopes() -> None:
 def test_bench_embed_scale_reports_every_figure(tiny, tmp_path: Path, capsys) -> None:
     scale = _script("bench_embed_scale")
     out = tmp_path / "scale.json"
-    argv = ["--run", str(tiny.fit), "--sizes", "24,32", "--num-ids", "2", "--bits", "8"]
+    # One configuration (each runs in a process of its own, compiling everything again): the growth lines
+    # over several are test_growth_lines_take_every_size_and_every_id_count's.
+    argv = ["--run", str(tiny.fit), "--sizes", "24", "--num-ids", "2", "--bits", "8"]
     argv += [
         "--decoder",
         str(tiny.decoder),
@@ -66,9 +70,9 @@ def test_bench_embed_scale_reports_every_figure(tiny, tmp_path: Path, capsys) ->
     assert scale.main(argv) == 0
     printed = json.loads(capsys.readouterr().out)
     assert printed == json.loads(out.read_text())
-    assert printed["sizes"] == [24, 32] and printed["num_ids"] == [2]
+    assert printed["sizes"] == [24] and printed["num_ids"] == [2]
     rows = printed["rows"]
-    assert [(r["side"], r["num_ids"], r["image"]) for r in rows] == [(24, 2, "24x24"), (32, 2, "32x32")]
+    assert [(r["side"], r["num_ids"], r["image"]) for r in rows] == [(24, 2, "24x24")]
     for row in rows:
         assert set(row) == set(scale.ROW_KEYS)
         assert row["cache_source"] and row["cache_mb"] > 0 and row["choice"]["preset"] == "procedural"
@@ -76,6 +80,28 @@ def test_bench_embed_scale_reports_every_figure(tiny, tmp_path: Path, capsys) ->
         for key in ("startup_s", "cache_s", "field_step_s", "phase3_step_s", "projected_s", "peak_rss_mb"):
             assert row[key] > 0, key
         assert row["field_peak_rss_mb"] <= row["peak_rss_mb"]
-    assert set(printed["growth"]) == {"pixels", "ids"}
-    assert set(printed["growth"]["pixels"]["field_step_s"]) == {"2 IDs"}
-    assert set(printed["growth"]["ids"]["peak_rss_mb"]) == {"24 px", "32 px"}
+    assert printed["growth"] == scale.growth(rows)  # one size, one ID count: every exponent None
+    assert printed["growth"]["pixels"]["field_step_s"] == {"2 IDs": None}
+
+
+def test_growth_lines_take_every_size_and_every_id_count() -> None:
+    scale = _script("bench_embed_scale")
+    # Step time ∝ pixels × IDs^0.5, memory ∝ pixels, projection flat; one failed row is left out.
+    rows = [
+        {
+            "side": s,
+            "num_ids": n,
+            "pixels": s * s,
+            "field_step_s": s * s * n**0.5,
+            "peak_rss_mb": s * s,
+            "projected_s": 7.0,
+        }
+        for s in (24, 48)
+        for n in (1, 4)
+    ] + [{"side": 96, "num_ids": 4, "error": "out of memory"}]
+    g = scale.growth(rows)
+    assert g["pixels"]["field_step_s"] == pytest.approx({"1 IDs": 1.0, "4 IDs": 1.0})
+    assert g["ids"]["field_step_s"] == pytest.approx({"24 px": 0.5, "48 px": 0.5})
+    assert g["ids"]["peak_rss_mb"] == pytest.approx({"24 px": 0.0, "48 px": 0.0}, abs=1e-12)
+    assert g["pixels"]["projected_s"] == pytest.approx({"1 IDs": 0.0, "4 IDs": 0.0}, abs=1e-12)
+    assert "96 px" not in g["ids"]["field_step_s"]

@@ -121,6 +121,11 @@ def test_novel_views_of_forward_facing_cameras_need_the_scenes_depth_bounds() ->
         novel_views.novel_cameras(cams, 3, 0)
 
 
+# Two of the 14 augmentations for steps whose test is not about them: the step (and its negatives' policy)
+# compiles in half the time; test_augment compiles the policy over the whole registry.
+FEW_ATTACKS = ("gaussian_noise", "box_blur")
+
+
 def _two_class_set(bits: int = 8) -> tuple[decoder_refit.RefitSet, dict]:
     """Two IDs whose renders differ by a pattern each (random 32-px images), and a random decoder."""
     rng = np.random.default_rng(1)
@@ -172,7 +177,9 @@ def test_phase_three_weighs_its_negatives_by_its_own_weight_not_phase_twos() -> 
     arrays = jax.tree.map(jax.numpy.asarray, data)
 
     def loss(**weights: float) -> float:
-        cfg = wm_config(phase3_steps=10, phase3_batch=8, augment_prob=0.0, **weights)  # fast to compile
+        cfg = wm_config(
+            phase3_steps=10, phase3_batch=8, augment_prob=0.0, augment_names=FEW_ATTACKS, **weights
+        )
         step = decoder_refit.make_refit_step(cfg, variables)
         opt_state = decoder_refit.refit_optimizer(cfg).init(variables["params"])
         return float(step(variables["params"], opt_state, jax.random.key(5), arrays, 0, 10)[2])
@@ -228,7 +235,7 @@ def test_phase_three_sizes_its_schedule_to_the_minutes_left() -> None:
     # With no time left after the timed steps, the schedule ends at the next step (the rate decayed to 0 on
     # it); with all the time it needs, it is the configured schedule, step for step the unbudgeted refit.
     data, variables = _two_class_set()
-    cfg = wm_config(phase3_steps=60, phase3_batch=4, augment_prob=0.0, seed=2)
+    cfg = wm_config(phase3_steps=60, phase3_batch=4, augment_prob=0.0, augment_names=FEW_ATTACKS, seed=2)
     plain, plain_metrics = decoder_refit.refit_decoder(cfg, variables, data)
     roomy, roomy_metrics = decoder_refit.refit_decoder(cfg, variables, data, seconds_left=lambda: 1e9)
     assert plain_metrics["scheduled"] == roomy_metrics["scheduled"] == roomy_metrics["steps"] == 60
@@ -248,7 +255,7 @@ def test_phase_three_sizes_its_schedule_again_as_it_runs(
     # Time that runs out after a roomy start ends the schedule at the step after the next sizing.
     monkeypatch.setattr(time_budget, "RESIZE_EVERY", 5)
     data, variables = _two_class_set()
-    cfg = wm_config(phase3_steps=60, phase3_batch=4, augment_prob=0.0, seed=2)
+    cfg = wm_config(phase3_steps=60, phase3_batch=4, augment_prob=0.0, augment_names=FEW_ATTACKS, seed=2)
     ticks = iter(range(10**6))
     answers = iter(minutes_left)
     _, metrics = decoder_refit.refit_decoder(
@@ -415,7 +422,13 @@ def test_a_refit_set_kept_as_its_reads_steps_exactly_as_the_images() -> None:
     # 8 bits (reads_of): the step then reads the very pixels it would have cut from the whole images.
     data, variables = _two_class_set()
     cfg = wm_config(
-        phase3_steps=10, phase3_batch=8, augment_prob=0.0, read_window=0.72, read_max_side=16, lambda_key=0.2
+        phase3_steps=10,
+        phase3_batch=8,
+        augment_prob=0.0,
+        augment_names=FEW_ATTACKS,
+        read_window=0.72,
+        read_max_side=16,
+        lambda_key=0.2,
     )
     assert decoder_refit.keeps_reads_only(cfg)
     assert not decoder_refit.keeps_reads_only(wm_config(augment_prob=0.5))
@@ -570,7 +583,10 @@ def test_phase_three_reads_its_attacked_copies_at_the_configured_share() -> None
 
     def loss(share: float, d: decoder_refit.RefitSet) -> float:
         cfg = wm_config(
-            phase3={"steps": 10, "batch": 8, "attacked": share}, augment_prob=0.0, read_window=1.0
+            phase3={"steps": 10, "batch": 8, "attacked": share},
+            augment_prob=0.0,
+            augment_names=FEW_ATTACKS,
+            read_window=1.0,
         )
         if share not in steps:
             steps[share] = decoder_refit.make_refit_step(cfg, variables)
@@ -588,12 +604,13 @@ def test_phase_three_reads_its_attacked_copies_at_the_configured_share() -> None
 
 
 def test_the_refit_set_keeps_each_image_read_after_real_attacks_when_asked(tiny: TinyRuns) -> None:
+    # Without the clean model's renders (test_the_refit_set_reuses_clean_renders_... has them); without
+    # phase3.attacked no copies are kept (tests/test_llff_ndc.py).
     wm = wm_run.load_watermarked_run(tiny.wm)
-    clean = wm_run.load_run(tiny.fit)
     split = wm.load_scene(None, splits=("train",)).split("train")
     base = wm.config.watermark
     cfg = dataclasses.replace(base, phase3=dataclasses.replace(base.phase3, views=2, attacked=0.5))
-    data = decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images, clean)
+    data = decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images)
     n_ids, n_views = data.renders.shape[:2]
     plain = decoder_refit.reads_of(split.images[:1].astype(np.float32) / 255.0, cfg)[:, 0]
     assert data.attacked.shape == (n_ids, n_views, *plain.shape[1:])
@@ -605,11 +622,9 @@ def test_the_refit_set_keeps_each_image_read_after_real_attacks_when_asked(tiny:
     else:
         as_rendered = np.stack([decoder_refit.reads_of(r, cfg)[:, 0] for r in data.renders])
     assert np.abs(data.attacked - as_rendered).mean() > 1e-3
-    again = decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images, clean)
+    again = decoder_refit.render_refit_set(wm, split.cameras, cfg, split.images)
     np.testing.assert_array_equal(again.attacked, data.attacked)
     np.testing.assert_array_equal(again.attacked_negatives, data.attacked_negatives)
-    none = decoder_refit.render_refit_set(wm, split.cameras, base, split.images, clean)
-    assert none.attacked is None and none.attacked_negatives is None
 
 
 def test_the_refit_script_redoes_phase_three_into_a_copy(tiny: TinyRuns, tmp_path, capsys) -> None:

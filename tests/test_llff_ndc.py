@@ -199,5 +199,6 @@ def test_a_tiny_forward_facing_scene_embeds_with_phase3_novel_views(
     # The photographs (no clean model given), and images from outside the scene.
     photographs = len(split.cameras)
     assert data_set.negatives.shape[0] == photographs + phase3.generic_count(photographs)
+    assert data_set.attacked is None and data_set.attacked_negatives is None  # phase3.attacked is 0
     assert np.all(np.isfinite(data_set.renders))
     assert data_set.renders.min() >= 0.0 and data_set.renders.max() <= 1.0

@@ -197,11 +197,10 @@ def test_downscaled_keeps_images_up_to_the_side_and_shrinks_longer_ones(
     h: int, w: int, max_side: int
 ) -> None:
     x = jnp.zeros((1, h, w, 3))
-    out = rw.downscaled(x, max_side)
     if not max_side or max(h, w) <= max_side:
-        assert out is x
+        assert rw.downscaled(x, max_side) is x
     else:
-        oh, ow = out.shape[1:3]
+        oh, ow = jax.eval_shape(lambda a: rw.downscaled(a, max_side), x).shape[1:3]  # no compilation
         assert oh % 4 == 0 and ow % 4 == 0 and 4 <= min(oh, ow) and max(oh, ow) <= max_side + 2
         scale = max_side / max(h, w)
         for side, new in ((h, oh), (w, ow)):  # the aspect ratio kept to the nearest 4 px (at least 4)

@@ -179,7 +179,7 @@ def embedding_budget(minutes: float, reserve_min: float, elapsed_s: float) -> tu
     left = (DEMO_MINUTES * 60.0 - elapsed_s - FINISH_ALLOWANCE_S) / 60.0
     if minutes <= 0 or left >= minutes:
         return ()
-    budget = min(max(left, MIN_EMBED_MINUTES), minutes)
+    budget = round(min(max(left, MIN_EMBED_MINUTES), minutes), 3)  # the reserve's share from what is set
     return (
         f"watermark.time_budget.minutes={budget:.3f}",
         f"watermark.phase3.reserve_min={reserve_min * budget / minutes:.3f}",
