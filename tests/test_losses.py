@@ -161,8 +161,9 @@ def test_ssim_loss_is_dm_pix_ssim(shape):
     y = jnp.clip(x + 0.1 * jax.random.normal(jax.random.key(1), x.shape), 0, 1)
     reference = lambda a: 1.0 - jnp.mean(pix.ssim(a, x, max_val=1.0))  # noqa: E731
     # Jitted: one compilation each instead of an eager dispatch per operation (and per its gradient).
-    loss, reference = jax.jit(jax.value_and_grad(losses.ssim_loss)), jax.jit(jax.value_and_grad(reference))
-    (value, grad), (expected_value, expected) = loss(y, x), reference(y)
+    loss_and_grad = jax.jit(jax.value_and_grad(losses.ssim_loss))
+    reference_and_grad = jax.jit(jax.value_and_grad(reference))
+    (value, grad), (expected_value, expected) = loss_and_grad(y, x), reference_and_grad(y)
     np.testing.assert_allclose(value, expected_value, atol=2e-5)  # float32 summation order
     expected = np.asarray(expected)
     np.testing.assert_allclose(grad, expected, atol=2e-3 * np.abs(expected).max())
