@@ -64,6 +64,23 @@ def test_the_threshold_for_a_rate_grows_with_the_rate(seed: int, size: int, rate
             assert e["named"] == 0 and e["threshold"] <= min(dist["values"][0], 1e-3)
 
 
+def test_a_rate_that_needs_a_threshold_at_the_floor_keeps_the_fallback() -> None:
+    """9 of 10,000 clean images read an exact 16-bit key (p at the floor 16 / 2^16): 0.1 % cannot be shown
+    above the floor, and a threshold at it would name no image at all, so the nominal one is kept."""
+    floor = 16 / 2**16
+    dist = C.distribution(np.r_[np.full(9, floor), np.full(40, 0.004), np.ones(9951)])
+    plain = C.threshold_for_rate(dist, 1e-3, fallback=1e-3)
+    assert plain["threshold"] == floor and plain["named"] == 0 and not plain["at_floor"]
+    kept = C.threshold_for_rate(dist, 1e-3, fallback=1e-3, floor=floor)
+    assert kept["at_floor"] and not kept["attained"] and kept["threshold"] == 1e-3
+    assert kept["named"] == C.named_at(dist, 1e-3) == 9
+    assert kept["rate_upper"] == pytest.approx(C.clopper_pearson_upper(9, 10_000))
+    assert "names no image" in C.describe(kept) and "nominal threshold is kept" in C.describe(kept)
+    # A rate the images can show above the floor is calibrated as before.
+    loose = C.threshold_for_rate(dist, 0.01, fallback=1e-3, floor=floor)
+    assert loose["attained"] and not loose["at_floor"] and loose["threshold"] > floor
+
+
 def test_threshold_table_and_distributions() -> None:
     dist = C.distribution([0.5, 0.1, 0.1, 0.01, 1.0, 0.5, 0.5])
     assert dist == {"values": [0.01, 0.1, 0.5, 1.0], "counts": [1, 2, 3, 1]}

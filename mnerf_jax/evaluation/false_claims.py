@@ -41,7 +41,7 @@ from mnerf_jax.evaluation import attacks as image_attacks
 from mnerf_jax.evaluation import watermarked as wm_eval
 from mnerf_jax.imaging import attack_suites
 from mnerf_jax.reader import calibration, significance
-from mnerf_jax.reader.identification import identify_logits
+from mnerf_jax.reader.identification import identify_logits, min_attainable_p
 from mnerf_jax.reader.train import cover_images
 from mnerf_jax.tensorf import run as runs
 from mnerf_jax.watermark import decision
@@ -365,7 +365,9 @@ def summarise(
         "target_rate": rate,
         "confidence": calibration.CONFIDENCE,
         "calibration": {
-            t: calibration.threshold_for_rate(d, rate, calibration.CONFIDENCE, nominal)
+            t: calibration.threshold_for_rate(
+                d, rate, calibration.CONFIDENCE, nominal, min_attainable_p(wm.num_ids, wm.bits)
+            )
             for t, d in dists.items()
         },
     }
@@ -410,7 +412,9 @@ def recalibrate(run_dir: str | Path, rate: float | None = None) -> dict[str, Any
         raise MnerfError(f"--rate must be in (0, 1), got {rate}")
     result["target_rate"] = rate
     result["calibration"] = {
-        t: calibration.threshold_for_rate(d, rate, calibration.CONFIDENCE, nominal)
+        t: calibration.threshold_for_rate(
+            d, rate, calibration.CONFIDENCE, nominal, min_attainable_p(result["num_ids"], result["bits"])
+        )
         for t, d in result["distribution"].items()
     }
     rundir.write_json_atomic(path, result)

@@ -11,7 +11,10 @@ threshold is the largest ``v_j`` whose count ``k`` has a one-sided Clopper–Pea
 confidence ``c`` (95 %) of at most ``r``: the rate at that threshold is ≤ ``r`` with confidence ``c``. Where
 even ``k = 0`` cannot show it (``M`` below about ``3 / r`` images), the calibration says so
 (``attained: false``) and keeps the smaller of ``v_1`` (nothing seen is named) and a fallback (the run's
-nominal threshold).
+nominal threshold). No read can get below the test's floor (``C·N / 2^L``: every bit of an ``L``-bit key
+agreeing, corrected over ``N`` keys and ``C`` reads), so a threshold at or below it names no image at all,
+watermarked ones included: where the rate would need one (clean images reading an exact key), the stated rate
+cannot be had with keys this short, and the calibration says so (``at_floor``) and keeps the fallback.
 """
 
 from __future__ import annotations
@@ -111,10 +114,13 @@ def threshold_for_rate(
     rate: float,
     confidence: float = CONFIDENCE,
     fallback: float | None = None,
+    floor: float | None = None,
 ) -> dict[str, Any]:
     """The calibrated threshold for a stated false-claim ``rate`` (module docstring): ``{"threshold",
-    "named", "images", "rate", "rate_upper", "target_rate", "confidence", "attained"}``. Non-decreasing
-    in ``rate``. Not attained (too few images): the smaller of the least value and ``fallback``."""
+    "named", "images", "rate", "rate_upper", "target_rate", "confidence", "attained", "floor",
+    "at_floor"}``. Non-decreasing in ``rate``. Not attained (too few images): the smaller of the least value
+    and ``fallback``. ``floor`` (None: unknown): the least statistic any read can have; a threshold at or
+    below it would name nothing, so ``fallback`` is kept instead (``at_floor``, not attained)."""
     if not 0.0 < rate < 1.0:
         raise ValueError(f"the stated rate must be in (0, 1), got {rate}")
     values, below, m = _arrays(dist)
@@ -125,6 +131,10 @@ def threshold_for_rate(
     else:
         threshold = float(values[0]) if fallback is None else min(float(values[0]), float(fallback))
         named, attained = 0, False
+    at_floor = floor is not None and fallback is not None and threshold <= floor < fallback
+    if at_floor:
+        threshold, attained = float(fallback), False
+        named = named_at(dist, threshold)
     return {
         "threshold": threshold,
         "named": named,
@@ -134,6 +144,8 @@ def threshold_for_rate(
         "target_rate": float(rate),
         "confidence": float(confidence),
         "attained": attained,
+        "floor": None if floor is None else float(floor),
+        "at_floor": bool(at_floor),
     }
 
 
@@ -151,6 +163,12 @@ def describe(entry: Mapping[str, Any]) -> str:
         f"calibrated on {entry['images']:,} clean images: {entry['named']} named, "
         f"rate ≤ {percent(entry['rate_upper'])} at {round(100 * entry['confidence'])} %"
     )
-    if not entry.get("attained", True):
+    if entry.get("at_floor", False):
+        text += (
+            f"; {percent(entry['target_rate'])} would need a threshold at the smallest p-value a read can "
+            f"give ({entry['floor']:.3g}), which names no image: keys this short cannot show it, so the "
+            "nominal threshold is kept"
+        )
+    elif not entry.get("attained", True):
         text += f"; too few images to show {percent(entry['target_rate'])}"
     return text

@@ -107,7 +107,7 @@ class Identification:
 
     @property
     def min_attainable_p(self) -> float:
-        return min(1.0, self.comparisons / float(1 << self.bits))
+        return min_attainable_p(self.comparisons, self.bits)
 
     @property
     def decision(self) -> np.ndarray:
@@ -117,6 +117,12 @@ class Identification:
         """Decisions ``[B]`` had ``test`` judged the same best matches at the same threshold."""
         p = self.p_corrected if significance.check_test(test) == "binomial" else self.p_corrected_sign_flip
         return np.where(p < self.threshold, self.best_id, NO_WATERMARK).astype(np.int64)
+
+
+def min_attainable_p(comparisons: int, bits: int) -> float:
+    """The smallest corrected p-value a read can give: every bit of an ``bits``-bit key agreeing, corrected
+    over ``comparisons`` (read, key) pairs (both tests: the sign-flip p-value is at least 2^-L too)."""
+    return min(1.0, comparisons / float(1 << bits))
 
 
 def identify(
