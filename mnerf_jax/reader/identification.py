@@ -120,7 +120,7 @@ class Identification:
 
 
 def min_attainable_p(comparisons: int, bits: int) -> float:
-    """The smallest corrected p-value a read can give: every bit of an ``bits``-bit key agreeing, corrected
+    """The smallest corrected p-value a read can give: every bit of a ``bits``-bit key agreeing, corrected
     over ``comparisons`` (read, key) pairs (both tests: the sign-flip p-value is at least 2^-L too)."""
     return min(1.0, comparisons / float(1 << bits))
 
