@@ -7,6 +7,7 @@ import json
 import zipfile
 from pathlib import Path
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -410,6 +411,34 @@ def test_short_training_run_learns(tmp_path: Path) -> None:
     assert record["config"]["informed_steps"] == 60
     assert record["encoder_refit"]["config"]["finetune_steps"] == 4
     assert [stages.side_and_batch(refit, (32, 48), i)[0] for i in range(3)] == [32, 48, 32]
+
+    # An encoder for a reader that downscales to 32 pixels (watermark.reading.max_side): its batches keep
+    # ``batch`` images at every side, and its check batch reads as recorded through that read.
+    for_read = dataclasses.replace(
+        refit, read_side=32, finetune_sizes=(64,), finetune_steps=2, eval_sizes=(64,)
+    )
+    assert stages.side_and_batch(for_read, (64,), 0, for_read.read_side) == (64, 16)
+    assert stages.side_and_batch(for_read, (64,), 0) == (64, 4)
+    read_metrics = stages.train_decoder(for_read, tmp_path / "for_read", progress=False)
+    assert read_metrics["fingerprint"] == loaded.fingerprint and set(read_metrics["heldout"]) == {"64px"}
+    with np.load(tmp_path / "for_read" / "check.npz", allow_pickle=False) as check:
+        stored, message = check["images"], check["bits"]
+    assert stored.shape[1:3] == (64, 64)
+    seen = read_window.downscaled(jnp.asarray(stored, jnp.float32) / 255.0, for_read.read_side)
+    read_acc = float(jnp.mean((dec.decode_logits(loaded.variables, seen) > 0) == (jnp.asarray(message) > 0)))
+    assert abs(read_acc - read_metrics["check_batch_bit_acc"]) <= 2.0 / message.size
+    # Started from that encoder, a run of no steps keeps it exactly; one of another architecture is refused.
+    source = tmp_path / "for_read" / "encoder.npz"
+    kept = dataclasses.replace(for_read, finetune_steps=0, encoder_from=str(source))
+    stages.train_decoder(kept, tmp_path / "kept", progress=False)
+    chex.assert_trees_all_equal(
+        hidden_encoder.load_encoder(tmp_path / "kept" / "encoder.npz")[0],
+        hidden_encoder.load_encoder(source)[0],
+    )
+    with pytest.raises(MnerfError, match="channels"):
+        stages.train_decoder(
+            dataclasses.replace(kept, encoder_channels=16), tmp_path / "bad_enc", progress=False
+        )
 
 
 def test_informed_step_with_a_margin_reads_windows_and_updates_the_decoder() -> None:

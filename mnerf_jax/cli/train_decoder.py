@@ -110,6 +110,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"({d.finetune_decoder_start})",
     )
     parser.add_argument(
+        "--read-side",
+        type=int,
+        default=d.read_side,
+        help="the encoder steps and the evaluation read each image downscaled to at most this side, as "
+        f"watermark.reading.max_side does (0: as it is) ({d.read_side})",
+    )
+    parser.add_argument(
+        "--encoder-from",
+        type=Path,
+        default=None,
+        help="start the encoder steps from this encoder.npz (with --decoder-from; the same "
+        "--encoder-channels and --encoder-depth) instead of a fresh encoder",
+    )
+    parser.add_argument(
         "--decoder-from",
         type=Path,
         default=None,
@@ -163,10 +177,12 @@ def run(args: argparse.Namespace) -> int:
         steps=args.steps,
         finetune_steps=args.finetune_steps,
         finetune_sizes=args.finetune_sizes or (),
+        read_side=args.read_side,
         lr_finetune=args.lr_finetune,
         finetune_decoder_lr=args.finetune_decoder_lr,
         finetune_decoder_start=args.finetune_decoder_start,
         decoder_from=str(args.decoder_from.resolve()) if args.decoder_from else "",
+        encoder_from=str(args.encoder_from.resolve()) if args.encoder_from else "",
         size=args.size,
         encoder_channels=args.encoder_channels,
         encoder_depth=args.encoder_depth,

@@ -27,6 +27,8 @@ ADDED_FIELDS = {
     "decoder_from": "",
     "finetune_decoder_lr": 0.0,
     "finetune_decoder_start": 0.25,
+    "read_side": 0,
+    "encoder_from": "",
 }
 
 

@@ -150,13 +150,13 @@ def evaluate_informed(
 def evaluate_sizes(
     cfg: DecoderTrainConfig, enc_vars: dict[str, Any], dec_vars: dict[str, Any]
 ) -> dict[str, Any]:
-    """Held-out figures at every side in ``cfg.eval_sizes``: ``{"64px": {...}, "256px": {...}}``."""
+    """Held-out figures at every side in ``cfg.eval_sizes``: ``{"64px": {...}, "256px": {...}}``, each read
+    at ``cfg.read_side``."""
     out = {}
     for size in cfg.eval_sizes:
         images = heldout_images(cfg.eval_images, size)
-        out[f"{size}px"] = evaluate(
-            cfg, enc_vars, dec_vars, images, heldout_messages(cfg.eval_images, cfg.bits)
-        )
+        messages = heldout_messages(cfg.eval_images, cfg.bits)
+        out[f"{size}px"] = evaluate(cfg, enc_vars, dec_vars, images, messages, max_side=cfg.read_side)
     return out
 
 

@@ -30,6 +30,10 @@ class DecoderTrainConfig:
     # Image sides of the encoder steps, in turn (each batch about as many pixels as ``batch`` × ``size``²);
     # empty: ``size`` only. An encoder trained at one side writes worse at the others.
     finetune_sizes: tuple[int, ...] = ()
+    # The side the decoder reads at in the encoder steps and the final evaluation: each image is downscaled to
+    # at most this side first (``watermark.reading.max_side``), and the encoder writes for that read, so its
+    # batches keep ``batch`` images at every side; 0: read as it is.
+    read_side: int = 0
     # Stage 4 can train the decoder too, HiDDeN-style, once the encoder writes for it: its peak learning rate
     # (0: the decoder stays frozen) and the share of the stage's steps before it starts. The decoder keeps its
     # BatchNorm statistics and whitening rotation (what the encoder learned against); the whitening's offset
@@ -39,6 +43,9 @@ class DecoderTrainConfig:
     # A whitened decoder file to train an encoder for (stages 1-3 skipped; the decoder is not changed unless
     # finetune_decoder_lr > 0).
     decoder_from: str = ""
+    # An encoder file (``encoder.npz``) of the same architecture to start the encoder steps from (with
+    # decoder_from): an encoder that writes well at one read is refitted for another; "": a fresh encoder.
+    encoder_from: str = ""
     size: int = 64  # side in pixels of the images the decoder sees in training (LL2 side = size / 4)
     crop_margin: int = 0  # images are encoded at size + margin; the decoder sees a random size × size window
     batch: int = 16
@@ -94,11 +101,15 @@ def informed_psnr(cfg: DecoderTrainConfig, step: int) -> float:
     return cfg.informed_start_psnr + (cfg.target_psnr - cfg.informed_start_psnr) * step / span
 
 
-def side_and_batch(cfg: DecoderTrainConfig, sides: tuple[int, ...], step: int) -> tuple[int, int]:
+def side_and_batch(
+    cfg: DecoderTrainConfig, sides: tuple[int, ...], step: int, read_side: int = 0
+) -> tuple[int, int]:
     """``(side, batch)`` of a step whose image sides take turns: each batch holds about as many pixels as
-    ``cfg.batch`` images of ``cfg.size``²."""
+    ``cfg.batch`` images of ``cfg.size``², as the decoder sees them (downscaled to ``read_side``; 0: as it
+    is)."""
     side = sides[step % len(sides)]
-    return side, max(1, round(cfg.batch * (cfg.size / side) ** 2))
+    seen = min(side, read_side) if read_side > 0 else side
+    return side, max(1, round(cfg.batch * (cfg.size / seen) ** 2))
 
 
 def informed_batch(cfg: DecoderTrainConfig, step: int) -> tuple[int, int]:

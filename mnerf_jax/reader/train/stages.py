@@ -48,11 +48,11 @@ import optax
 
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.reader import decoder as dec
-from mnerf_jax.reader import decoder_io, dwt
+from mnerf_jax.reader import decoder_io, dwt, read_window
 from mnerf_jax.reader.train.checkpoint import ARRAY_KEYS, load_checkpoint, save_checkpoint
 from mnerf_jax.reader.train.cover_images import ImageSource, heldout_images, heldout_messages
 from mnerf_jax.reader.train.evaluation import clean_accuracy, evaluate_sizes
-from mnerf_jax.reader.train.hidden_encoder import encode_batch, init_encoder, save_encoder
+from mnerf_jax.reader.train.hidden_encoder import encode_batch, init_encoder, load_encoder, save_encoder
 from mnerf_jax.reader.train.recipe import (
     DecoderTrainConfig,
     finetune_decoder_start_step,
@@ -110,9 +110,25 @@ def decoder_from_file(cfg: DecoderTrainConfig) -> dict[str, Any]:
     return dict(jax.tree.map(jnp.asarray, loaded.variables))
 
 
+def encoder_from_file(cfg: DecoderTrainConfig) -> dict[str, Any]:
+    """The encoder of ``cfg.encoder_from``, checked against the run's bits and architecture."""
+    encoder, saved = load_encoder(cfg.encoder_from)
+    ours = (cfg.bits, cfg.encoder_channels, cfg.encoder_depth)
+    theirs = (saved.bits, saved.encoder_channels, saved.encoder_depth)
+    if theirs != ours:
+        raise MnerfError(
+            f"--encoder-from {cfg.encoder_from} is a {theirs[0]}-bit encoder of {theirs[1]} channels and "
+            f"depth {theirs[2]}; the run's is {ours[0]}-bit, {ours[1]} channels, depth {ours[2]}"
+        )
+    return dict(encoder)
+
+
 def init_state(cfg: DecoderTrainConfig) -> tuple[dict[str, Any], tuple]:
     k_enc, k_dec = jax.random.split(jax.random.PRNGKey(cfg.seed))
-    encoder = init_encoder(k_enc, cfg.bits, cfg.encoder_channels, cfg.encoder_depth)
+    if cfg.encoder_from:
+        encoder = encoder_from_file(cfg)
+    else:
+        encoder = init_encoder(k_enc, cfg.bits, cfg.encoder_channels, cfg.encoder_depth)
     if cfg.decoder_from:
         decoder = decoder_from_file(cfg)
     else:
@@ -160,7 +176,8 @@ def _batches(
             batch, stage = cfg.batch, "joint"
             images = source.sample(rng, batch)
         else:
-            side, batch = side_and_batch(cfg, finetune_sides(cfg), step - cfg.informed_steps - cfg.steps)
+            stage_step = step - cfg.informed_steps - cfg.steps
+            side, batch = side_and_batch(cfg, finetune_sides(cfg), stage_step, cfg.read_side)
             images, stage = sample(rng, side + cfg.crop_margin, batch), "finetune"
         bits = rng.integers(0, 2, size=(batch, cfg.bits)).astype(np.float32)
         yield step, stage, images, bits
@@ -210,8 +227,12 @@ def train_decoder(
             f"--pool-margin {cfg.pool_margin} leaves no positions to pool in {smallest}-px training images "
             f"(the LL2 side, {smallest // 4}, must exceed twice the margin; raise --size / --informed-sizes)"
         )
+    if cfg.encoder_from and not cfg.decoder_from:
+        raise MnerfError("--encoder-from refits an encoder for a finished decoder: pass --decoder-from too")
     if cfg.decoder_from:
         decoder_from_file(cfg)  # a wrong file fails here, before anything is written
+    if cfg.encoder_from:
+        encoder_from_file(cfg)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoint.msgpack"
@@ -369,9 +390,12 @@ def finish(cfg: DecoderTrainConfig, state: dict[str, Any], out: Path, wall: floa
     # The check batch: encoded held-out images quantised to 8 bits, as a saved PNG would hold them.
     check_size = max(cfg.eval_sizes) if max(cfg.eval_sizes) <= 128 else 128
     check_bits = heldout_messages(cfg.check_images, cfg.bits)
-    check_images = encode_batch(cfg, enc_vars, heldout_images(cfg.check_images, check_size), check_bits)
+    check_images = encode_batch(
+        cfg, enc_vars, heldout_images(cfg.check_images, check_size), check_bits, cfg.read_side
+    )
     check_images = np.round(check_images * 255.0).astype(np.uint8)
-    check_logits = dec.decode_logits(dec_vars, jnp.asarray(check_images, jnp.float32) / 255.0, cfg.wavelet)
+    check_read = read_window.downscaled(jnp.asarray(check_images, jnp.float32) / 255.0, cfg.read_side)
+    check_logits = dec.decode_logits(dec_vars, check_read, cfg.wavelet)
     check_acc = float(jnp.mean((check_logits > 0) == (jnp.asarray(check_bits) > 0.5)))
     this_run = {
         "recipe": "mnerf train-decoder",

@@ -14,7 +14,7 @@ import optax
 from mnerf_jax.core import xla_cpu
 from mnerf_jax.imaging import losses
 from mnerf_jax.reader import decoder as dec
-from mnerf_jax.reader import dwt
+from mnerf_jax.reader import dwt, read_window
 from mnerf_jax.reader.train import informed
 from mnerf_jax.reader.train.evaluation import policy
 from mnerf_jax.reader.train.hidden_encoder import encode
@@ -133,11 +133,12 @@ def make_finetune_step(
 
     def loss_fn(params, state, images, bits, key):
         enc = {"params": params["encoder"], "batch_stats": state["encoder"]["batch_stats"]}
-        encoded, enc_stats = encode(enc, images, bits, cfg, train=True)
+        encoded, enc_stats = encode(enc, images, bits, cfg, train=True, max_side=cfg.read_side)
         k_apply, k_aug, k_crop = jax.random.split(key, 3)
         window = random_windows(k_crop, encoded, encoded.shape[1] - cfg.crop_margin)  # sides take turns
         # Half the steps see the clean encoded image: the no-attack accuracy matters as much as robustness.
         seen = jnp.where(jax.random.uniform(k_apply) < 0.5, augment_fn(k_aug, window), window)
+        seen = read_window.downscaled(seen, cfg.read_side)  # the read the encoder writes for (0: as is)
         logits = dec.apply_ll2({**state["decoder"], "params": params["decoder"]}, dwt.ll2(seen, cfg.wavelet))
         loss = _message_loss(logits, bits, cfg.temperature)
         return loss, {"enc_stats": enc_stats, "acc": _bit_acc(logits, bits), "psnr": _psnr(encoded, images)}
