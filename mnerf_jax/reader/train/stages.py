@@ -48,10 +48,10 @@ import optax
 
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.reader import decoder as dec
-from mnerf_jax.reader import decoder_io, dwt, read_window
+from mnerf_jax.reader import decoder_io, dwt
 from mnerf_jax.reader.train.checkpoint import ARRAY_KEYS, load_checkpoint, save_checkpoint
 from mnerf_jax.reader.train.cover_images import ImageSource, heldout_images, heldout_messages
-from mnerf_jax.reader.train.evaluation import clean_accuracy, evaluate_sizes
+from mnerf_jax.reader.train.evaluation import clean_accuracy, evaluate_sizes, reader
 from mnerf_jax.reader.train.hidden_encoder import encode_batch, init_encoder, load_encoder, save_encoder
 from mnerf_jax.reader.train.recipe import (
     DecoderTrainConfig,
@@ -394,8 +394,7 @@ def finish(cfg: DecoderTrainConfig, state: dict[str, Any], out: Path, wall: floa
         cfg, enc_vars, heldout_images(cfg.check_images, check_size), check_bits, cfg.read_side
     )
     check_images = np.round(check_images * 255.0).astype(np.uint8)
-    check_read = read_window.downscaled(jnp.asarray(check_images, jnp.float32) / 255.0, cfg.read_side)
-    check_logits = dec.decode_logits(dec_vars, check_read, cfg.wavelet)
+    check_logits = reader(cfg, dec_vars, cfg.read_side)(jnp.asarray(check_images, jnp.float32) / 255.0)
     check_acc = float(jnp.mean((check_logits > 0) == (jnp.asarray(check_bits) > 0.5)))
     this_run = {
         "recipe": "mnerf train-decoder",
