@@ -27,8 +27,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
-import os
-import platform
 import resource
 import shutil
 import sys
@@ -42,7 +40,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from mnerf_jax.core import rundir
+from mnerf_jax.core import machine, rundir
 from mnerf_jax.core.config import Config
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.evaluation import attacks as wm_attacks
@@ -82,21 +80,6 @@ def peak_rss_mb() -> float:
     """The process's peak resident set so far in MiB (Linux reports KiB, macOS bytes)."""
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return round(peak / (2.0**20 if sys.platform == "darwin" else 1024.0), 1)
-
-
-def machine() -> str:
-    """The machine a cell runs on, in words: CPU model and cores, Python, JAX and its device."""
-    cpu = platform.processor() or platform.machine()
-    with contextlib.suppress(OSError):
-        names = [
-            line for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name")
-        ]
-        cpu = names[0].split(":", 1)[1].strip() if names else cpu
-    device = jax.devices()[0]
-    return (
-        f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, jax {jax.__version__} "
-        f"({device.platform}: {device.device_kind})"
-    )
 
 
 def param_counts(params: Mapping[str, Any]) -> dict[str, int]:
@@ -279,7 +262,7 @@ def run_cell(ctx: _Context, cell: grid.Cell) -> dict[str, Any]:
         "attacks": attacks,
         "peak_rss_mb": peak_rss_mb(),
         "peak_rss_before_mb": rss_before,
-        "machine": machine(),
+        "machine": machine.describe(),
     }
     rundir.write_json_atomic(folder / results.RESULT_FILE, result)
     (folder / results.ERROR_FILE).unlink(missing_ok=True)

@@ -34,8 +34,6 @@ Images come from ``decoder_images``. Every step's batch is drawn from
 from __future__ import annotations
 
 import json
-import os
-import platform
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -46,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from mnerf_jax.core import machine
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.reader import decoder as dec
 from mnerf_jax.reader import decoder_io, dwt
@@ -181,11 +180,6 @@ def _batches(
             images, stage = sample(rng, side + cfg.crop_margin, batch), "finetune"
         bits = rng.integers(0, 2, size=(batch, cfg.bits)).astype(np.float32)
         yield step, stage, images, bits
-
-
-def _machine() -> str:
-    cpu = f"{platform.machine()} {platform.processor() or ''}".strip()
-    return f"{cpu}, {os.cpu_count()} CPU cores, JAX {jax.__version__} on {jax.default_backend()}"
 
 
 def train_decoder(
@@ -400,7 +394,7 @@ def finish(cfg: DecoderTrainConfig, state: dict[str, Any], out: Path, wall: floa
         "recipe": "mnerf train-decoder",
         "config": cfg.to_dict(),
         "wall_time_s": round(wall, 1),
-        "machine": _machine(),
+        "machine": machine.describe(),
         "steps": cfg.steps + cfg.finetune_steps,
     }
     training = this_run
