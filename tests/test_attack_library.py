@@ -382,12 +382,12 @@ def test_the_decoder_reads_odd_non_square_images() -> None:
     decoder pools over any size, through the read window too."""
     import jax
 
-    from mnerf_jax.reader import decoder, extract
+    from mnerf_jax.reader import decoder, extract, read_window
 
     variables = decoder.init_decoder(jax.random.PRNGKey(0), 8)
     x = S.ATTACKS["crop_random60"](_images(h=38, w=61), 0)  # 29 x 47
     assert x.shape[1:3] == (29, 47)
-    logits = np.asarray(extract.decode(variables, x, window=0.8))
+    logits = np.asarray(extract.decode(variables, x, read=read_window.ReadOptions(window=0.8)))
     assert logits.shape == (2, 8) and np.isfinite(logits).all()
 
 

@@ -435,9 +435,11 @@ def test_a_refit_set_kept_as_its_reads_steps_exactly_as_the_images() -> None:
     images = data.renders[0]
     reads = decoder_refit.reads_of(images, cfg)
     assert reads.shape == (len(images), 2, 16, 16, 3)
-    window, background, _, max_side = read_window.of_config(cfg.reading)
+    read = read_window.of_config(cfg.reading)
     for kept, image in ((reads[:, 0], images), (reads[:, 1], np.round(images * 255) / 255)):
-        expected = read_window.read_window(jnp.asarray(image), window, background, max_side=max_side)
+        expected = read_window.read_window(
+            jnp.asarray(image), read.window, read.background, max_side=read.max_side
+        )
         np.testing.assert_allclose(kept, np.asarray(expected), atol=1e-6)
     compact = decoder_refit.RefitSet(
         np.stack([decoder_refit.reads_of(r, cfg) for r in data.renders]),

@@ -96,12 +96,12 @@ def test_decode_with_a_window_reads_the_cropped_image(make_decoder, tmp_path) ->
     loaded = decoder_io.load_decoder(make_decoder(tmp_path / "d.npz", 8))
     x = object_on_white(20, 4)
     top, left = np.asarray(rw.window_origin(jnp.asarray(x), 32, 1.0))[0]
-    windowed = extract.decode(loaded.variables, x, loaded.wavelet, window=32 / SIDE)
+    windowed = extract.decode(loaded.variables, x, loaded.wavelet, read=rw.ReadOptions(window=32 / SIDE))
     cropped = extract.decode(loaded.variables, x[:, top : top + 32, left : left + 32], loaded.wavelet)
     np.testing.assert_allclose(np.asarray(windowed), np.asarray(cropped), atol=1e-5)
     meta = {"read_window": 0.72, "read_background": -1.0}
-    assert rw.of_metadata(meta) == (0.72, None, 0, 0) and rw.of_metadata({}) == (0.0, 1.0, 0, 0)
-    assert rw.of_metadata({**meta, "read_jitter": 2}) == (0.72, None, 2, 0)
+    assert rw.of_metadata(meta) == rw.ReadOptions(0.72, None) and rw.of_metadata({}) == rw.ReadOptions()
+    assert rw.of_metadata({**meta, "read_jitter": 2}) == rw.ReadOptions(0.72, None, jitter=2)
 
 
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -143,14 +143,17 @@ def test_a_jittered_read_is_the_mean_over_the_moved_windows(make_decoder, tmp_pa
         o = np.clip(top_left + [dy, dx], 0, SIDE - 32)
         crops = np.stack([im[a : a + 32, b : b + 32] for im, (a, b) in zip(x, o, strict=True)])
         by_hand.append(np.asarray(extract.decode(loaded.variables, crops, loaded.wavelet)))
-    jittered = extract.decode(loaded.variables, x, loaded.wavelet, batch_size=4, window=32 / SIDE, jitter=2)
+    jittered = extract.decode(
+        loaded.variables, x, loaded.wavelet, batch_size=4, read=rw.ReadOptions(window=32 / SIDE, jitter=2)
+    )
     np.testing.assert_allclose(np.asarray(jittered), np.mean(by_hand, axis=0), atol=1e-5)
-    plain = extract.decode(loaded.variables, x, loaded.wavelet, window=32 / SIDE)
+    plain = extract.decode(loaded.variables, x, loaded.wavelet, read=rw.ReadOptions(window=32 / SIDE))
     np.testing.assert_allclose(np.asarray(plain), by_hand[0], atol=1e-5)
     assert not np.allclose(np.asarray(jittered), np.asarray(plain), atol=1e-4)
     whole = extract.decode(loaded.variables, x, loaded.wavelet)
     np.testing.assert_array_equal(
-        np.asarray(extract.decode(loaded.variables, x, loaded.wavelet, jitter=2)), np.asarray(whole)
+        np.asarray(extract.decode(loaded.variables, x, loaded.wavelet, read=rw.ReadOptions(jitter=2))),
+        np.asarray(whole),
     )
 
 
@@ -176,10 +179,12 @@ def test_extract_with_a_run_decoder_file_reads_its_recorded_window(make_decoder,
         ["extract", str(tmp_path / "view.png"), "--decoder", str(path)]
     )
     records, _ = extract_cmd.extract_records(args)
-    want = extract.decode(plain.variables, image[None], plain.wavelet, window=0.5, jitter=1)[0]
+    want = extract.decode(
+        plain.variables, image[None], plain.wavelet, read=rw.ReadOptions(window=0.5, jitter=1)
+    )[0]
     # The records round logits to 4 decimals; this small random decoder's logits are ~1e-2.
     np.testing.assert_allclose(records[0]["logits"], np.asarray(want), atol=6e-5)
-    centred = extract.decode(plain.variables, image[None], plain.wavelet, window=0.5)[0]
+    centred = extract.decode(plain.variables, image[None], plain.wavelet, read=rw.ReadOptions(window=0.5))[0]
     whole = extract.decode(plain.variables, image[None], plain.wavelet)[0]
     for other in (centred, whole):
         assert np.abs(np.asarray(want) - np.asarray(other)).max() > 1.5e-4
@@ -217,9 +222,13 @@ def test_a_read_at_a_fixed_side_does_not_depend_on_the_images_size(make_decoder,
     small = np.asarray(jax.image.resize(coarse, (2, 64, 64, 3), "linear"))  # a smooth picture
     large = np.repeat(np.repeat(small, 4, axis=1), 4, axis=2)
     np.testing.assert_allclose(np.asarray(rw.downscaled(jnp.asarray(large), 64)), small, atol=3e-2)
-    at_64 = np.asarray(extract.decode(loaded.variables, small, loaded.wavelet, max_side=64))
+    at_64 = np.asarray(
+        extract.decode(loaded.variables, small, loaded.wavelet, read=rw.ReadOptions(max_side=64))
+    )
     np.testing.assert_array_equal(at_64, np.asarray(extract.decode(loaded.variables, small, loaded.wavelet)))
-    read_large = np.asarray(extract.decode(loaded.variables, large, loaded.wavelet, max_side=64))
+    read_large = np.asarray(
+        extract.decode(loaded.variables, large, loaded.wavelet, read=rw.ReadOptions(max_side=64))
+    )
     assert np.mean(np.sign(read_large) == np.sign(at_64)) >= 0.9
     # The gradient passes the resampling (the embedding writes through it).
     grad = jax.grad(lambda x: jnp.sum(rw.read_window(x, 0.5, 1.0, max_side=16)))(jnp.asarray(large[:1]))
@@ -230,9 +239,9 @@ def test_runs_embedded_before_max_side_existed_read_at_full_size(tmp_path) -> No
     from mnerf_jax.core import rundir
     from mnerf_jax.core.watermark_config import ReadingConfig
 
-    assert rw.of_metadata({"read_window": 0.5})[3] == 0  # a decoder file without the setting
-    assert rw.of_metadata({"read_max_side": 64})[3] == 64
-    assert rw.of_config(ReadingConfig())[3] == 64
+    assert rw.of_metadata({"read_window": 0.5}).max_side == 0  # a decoder file without the setting
+    assert rw.of_metadata({"read_max_side": 64}).max_side == 64
+    assert rw.of_config(ReadingConfig()).max_side == 64
     old = {"watermark": {"reading": {"window": 0.72}}}
     assert rundir.with_full_size_reads(old)["watermark"]["reading"] == {"window": 0.72, "max_side": 0}
     assert rundir.with_full_size_reads({"watermark": {"read_window": 0.5}})["watermark"]["read_max_side"] == 0

@@ -188,8 +188,8 @@ def test_extract_identifies_the_id_of_rendered_images(
     assert [{k: v for k, v in r.items() if k != "run"} for r in records] == library
     # The same files decoded directly with the run's decoder and read window, matched to its keys by hand.
     keys, decoder = wm_run.load_keys_and_decoder(tiny.wm)
-    window = read_window.of_config(rundir.read_run_config(tiny.wm).watermark.reading)
-    logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, 32, *window).astype(np.float64)
+    read = read_window.of_config(rundir.read_run_config(tiny.wm).watermark.reading)
+    logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, 32, read).astype(np.float64)
     signs = 2.0 * keys.messages.astype(np.float64) - 1.0
     for r, row in zip(records, logits, strict=True):
         bits = (row > 0).astype(np.uint8)

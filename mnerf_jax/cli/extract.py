@@ -4,6 +4,7 @@ watermarked run's keys and decoder (best-matching key, bit accuracy, binomial an
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -82,12 +83,10 @@ def extract_records(args: argparse.Namespace) -> tuple[list[dict], object]:
         )
     decoder = extract.resolve_decoder(args.decoder, args.bits)
     # A watermarked run's decoder.npz records the run's read window and jitter; others read the whole image.
-    window, background, jitter, max_side = read_window.of_metadata(decoder.metadata)
+    read = read_window.of_metadata(decoder.metadata)
     if args.read_jitter is not None:
-        jitter = read_window.check_jitter(args.read_jitter)
-    logits = extract.decode_paths(
-        decoder.variables, args.images, decoder.wavelet, args.batch, window, background, jitter, max_side
-    )
+        read = dataclasses.replace(read, jitter=read_window.check_jitter(args.read_jitter))
+    logits = extract.decode_paths(decoder.variables, args.images, decoder.wavelet, args.batch, read)
     records = []
     for path, row in zip(args.images, logits, strict=True):
         records.append(

@@ -199,7 +199,7 @@ def _read(decoder: Any, wm: Any, images: np.ndarray, search: geometry_search.Geo
     if not search.active:
         return wm_eval.decode_renders(decoder, wm, x, batch=32)[:, None]
     reading = read_window.of_config(wm.reading)
-    return geometry_search.search_logits(decoder.variables, x, search, decoder.wavelet, 32, *reading)
+    return geometry_search.search_logits(decoder.variables, x, search, decoder.wavelet, 32, reading)
 
 
 def _scored(

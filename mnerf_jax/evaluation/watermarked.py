@@ -48,7 +48,7 @@ def decode_renders(decoder: Any, wm: Any, images: np.ndarray, batch: int = 16) -
 
     images = np.asarray(images, np.float32)
     return np.asarray(
-        extract.decode(decoder.variables, images, decoder.wavelet, batch, *read_window.of_config(wm.reading))
+        extract.decode(decoder.variables, images, decoder.wavelet, batch, read_window.of_config(wm.reading))
     )
 
 
@@ -329,12 +329,12 @@ def identify_images(
     chosen: list[geometry_search.Candidate] = []
     if searched.active:
         every = geometry_search.search_paths(
-            decoder.variables, paths, searched, decoder.wavelet, batch_size, *reading
+            decoder.variables, paths, searched, decoder.wavelet, batch_size, reading
         )
         kept = geometry_search.identify(every, keys.messages, searched.candidates(), thr, test)
         logits, ident, chosen = kept.logits, kept.identification, kept.chosen_candidates()
     else:
-        logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, batch_size, *reading)
+        logits = extract.decode_paths(decoder.variables, paths, decoder.wavelet, batch_size, reading)
         ident = identify_logits(logits, keys.messages, thr, test)
     records = []
     for i, (p, row) in enumerate(zip(paths, logits, strict=True)):

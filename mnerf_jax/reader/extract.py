@@ -7,6 +7,7 @@ into chunks of ``batch_size`` images (the last one padded): memory stays bounded
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -23,20 +24,16 @@ from mnerf_jax.reader import decoder_io, dwt, read_window
 PIXEL_BUDGET = 1 << 19  # image pixels per decoder call (chunks of 52 images at 100², 1 at 800²)
 
 
-@xla_cpu.jit_cpu_tuned(static_argnames=("wavelet", "window", "background", "jitter", "max_side"))
+@xla_cpu.jit_cpu_tuned(static_argnames=("wavelet", "read"))
 def _decode_chunk(
-    variables: Mapping[str, Any],
-    images: jax.Array,
-    wavelet: str,
-    window: float,
-    background: float | None,
-    jitter: int,
-    max_side: int,
+    variables: Mapping[str, Any], images: jax.Array, wavelet: str, read: read_window.ReadOptions
 ) -> jax.Array:
     logits_of = lambda windows: dec.apply_ll2(variables, dwt.ll2(windows, wavelet))  # noqa: E731
-    if jitter:
-        return read_window.jittered_logits(logits_of, images, window, background, jitter, max_side)
-    return logits_of(read_window.read_window(images, window, background, max_side=max_side))
+    if read.jitter:
+        return read_window.jittered_logits(
+            logits_of, images, read.window, read.background, read.jitter, read.max_side
+        )
+    return logits_of(read_window.window_of(images, read))
 
 
 def check_images(images: Any) -> np.ndarray | jax.Array:
@@ -72,19 +69,14 @@ def decode(
     images: Any,
     wavelet: str = "bior4.4",
     batch_size: int = 32,
-    window: float = 0.0,
-    background: float | None = 1.0,
-    jitter: int = 0,
-    max_side: int = 0,
+    read: read_window.ReadOptions = read_window.WHOLE_IMAGE,
 ) -> jax.Array:
     """Logits of images ``[B, H, W, 3]`` in [0, 1] → ``[B, L]`` (a single ``[H, W, 3]`` → ``[L]``).
 
     Integer images (uint8) are scaled by 1/255. The work is done in chunks of at most ``batch_size`` images
-    and ``PIXEL_BUDGET`` pixels. ``window``, ``background``: the decoder reads
-    ``read_window.read_window(images, window, background)`` (a watermarked run's ``watermark.read_window``);
-    ``jitter`` > 0: the mean of its logits over the windows moved by up to that many pixels
-    (``read_window.jittered_logits``; a run's ``watermark.read_jitter``). ``max_side``: each window read at
-    most that many pixels a side (``read_window.downscaled``; a run's ``watermark.reading.max_side``).
+    and ``PIXEL_BUDGET`` pixels. ``read``: the window, its background, the jitter and the side the decoder
+    reads (:class:`read_window.ReadOptions`; a watermarked run's ``watermark.reading``, see
+    ``read_window.of_config``); the default reads the whole image once, at its own size.
     """
     images = check_images(images)
     single = np.ndim(images) == 3
@@ -95,14 +87,15 @@ def decode(
     if single:
         x = x[None]
     n, h, w = x.shape[:3]
-    jitter = jitter if window else 0  # the whole image has no room to move
-    chunk = chunk_size(n, h, w, batch_size, len(read_window.jitter_offsets(jitter)))
+    if not read.window:  # the whole image has no room to move
+        read = dataclasses.replace(read, jitter=0)
+    chunk = chunk_size(n, h, w, batch_size, len(read_window.jitter_offsets(read.jitter)))
     outs = []
     for start in range(0, n, chunk):
         part = x[start : start + chunk]
         if part.shape[0] < chunk:  # pad so that every chunk has the compiled shape
             part = jnp.concatenate([part, jnp.zeros((chunk - part.shape[0], *part.shape[1:]), part.dtype)])
-        logits = _decode_chunk(variables, part, wavelet, window, background, jitter, max_side)
+        logits = _decode_chunk(variables, part, wavelet, read)
         outs.append(logits[: min(chunk, n - start)])
     logits = jnp.concatenate(outs) if len(outs) > 1 else outs[0]
     return logits[0] if single else logits
@@ -153,13 +146,10 @@ def decode_paths(
     paths: Sequence[str | Path],
     wavelet: str = "bior4.4",
     batch_size: int = 32,
-    window: float = 0.0,
-    background: float | None = 1.0,
-    jitter: int = 0,
-    max_side: int = 0,
+    read: read_window.ReadOptions = read_window.WHOLE_IMAGE,
 ) -> np.ndarray:
     """Logits ``[N, L]`` of image files, in the given order; images of one size are decoded together
-    (``window``, ``background``, ``jitter``, ``max_side``: as :func:`decode`)."""
+    (``read``: as :func:`decode`)."""
     images = [load_image(p) for p in paths]
     by_size: dict[tuple[int, int], list[int]] = {}
     for i, image in enumerate(images):
@@ -168,9 +158,7 @@ def decode_paths(
     out = np.zeros((len(images), bits), np.float32)
     for indices in by_size.values():
         batch = np.stack([images[i] for i in indices])
-        out[indices] = np.asarray(
-            decode(variables, batch, wavelet, batch_size, window, background, jitter, max_side)
-        )
+        out[indices] = np.asarray(decode(variables, batch, wavelet, batch_size, read))
     return out
 
 

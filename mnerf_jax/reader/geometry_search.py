@@ -36,7 +36,7 @@ from skimage import transform
 
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.core.watermark_config import ReadingConfig, SearchMode, check_search_grid
-from mnerf_jax.reader import extract
+from mnerf_jax.reader import extract, read_window
 from mnerf_jax.reader.identification import Identification, identify_best_read
 
 SEARCH_MODES: tuple[str, ...] = get_args(SearchMode)
@@ -172,25 +172,22 @@ def search_logits(
     search: GeometrySearch,
     wavelet: str = "bior4.4",
     batch_size: int = 32,
-    window: float = 0.0,
-    background: float | None = 1.0,
-    jitter: int = 0,
-    max_side: int = 0,
+    read: read_window.ReadOptions = read_window.WHOLE_IMAGE,
 ) -> np.ndarray:
     """Logits ``[B, C, L]`` of every candidate read of images ``[B, H, W, 3]`` (uint8, or float in [0, 1]),
     candidates in :meth:`GeometrySearch.candidates`' order (``[:, 0]`` is the plain read).
 
     Candidates of one output size are read together: the undone copies of a slice of the images, every
-    candidate's, go through :func:`extract.decode` in one call (``window``, ``background``, ``jitter``: as
-    there), slices sized so that at most :data:`WARP_PIXEL_BUDGET` warped pixels are held at once. Pixels the
-    undo brings in from outside get the backdrop's grey on a windowed read (the window ignores them), black
-    otherwise (as the attacks fill).
+    candidate's, go through :func:`extract.decode` in one call (``read``: as there), slices sized so that
+    at most :data:`WARP_PIXEL_BUDGET` warped pixels are held at once. Pixels the undo brings in from outside
+    get the backdrop's grey on a windowed read (the window ignores them), black otherwise (as the attacks
+    fill).
     """
     x = np.asarray(extract.check_images(images))
     x = x.astype(np.float32) / 255.0 if not np.issubdtype(x.dtype, np.floating) else x.astype(np.float32)
     if x.ndim == 3:
         raise MnerfError("a geometry search reads a batch of images [B, H, W, 3]")
-    fill = float(background) if window and background is not None else 0.0
+    fill = float(read.background) if read.window and read.background is not None else 0.0
     candidates = search.candidates()
     b, h, w = x.shape[:3]
     out: np.ndarray | None = None
@@ -205,9 +202,9 @@ def search_logits(
             if len(part) < per:  # padded to the slice's shape (one decoder compilation per size)
                 part = np.concatenate([part, np.zeros((per - len(part), h, w, 3), np.float32)])
             warped = np.concatenate([undo(part, candidates[c], fill) for c in members])
-            logits = np.asarray(
-                extract.decode(variables, warped, wavelet, batch_size, window, background, jitter, max_side)
-            ).reshape(len(members), per, -1)
+            logits = np.asarray(extract.decode(variables, warped, wavelet, batch_size, read)).reshape(
+                len(members), per, -1
+            )
             if out is None:
                 out = np.zeros((b, len(candidates), logits.shape[-1]), np.float32)
             n = min(per, b - start)
@@ -222,10 +219,7 @@ def search_paths(
     search: GeometrySearch,
     wavelet: str = "bior4.4",
     batch_size: int = 32,
-    window: float = 0.0,
-    background: float | None = 1.0,
-    jitter: int = 0,
-    max_side: int = 0,
+    read: read_window.ReadOptions = read_window.WHOLE_IMAGE,
 ) -> np.ndarray:
     """Logits ``[N, C, L]`` of every candidate read of image files (:func:`search_logits`), in the given
     order; images of one size are searched together."""
@@ -236,9 +230,7 @@ def search_paths(
     out: np.ndarray | None = None
     for indices in by_size.values():
         batch = np.stack([images[i] for i in indices])
-        logits = search_logits(
-            variables, batch, search, wavelet, batch_size, window, background, jitter, max_side
-        )
+        logits = search_logits(variables, batch, search, wavelet, batch_size, read)
         if out is None:
             out = np.zeros((len(images), *logits.shape[1:]), np.float32)
         out[indices] = logits

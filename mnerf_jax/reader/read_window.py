@@ -15,6 +15,7 @@ not its position.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -162,9 +163,31 @@ def background_of(read_background: float) -> float | None:
     return None if read_background < 0 else float(read_background)
 
 
-def of_config(reading: ReadingConfig) -> tuple[float, float | None, int, int]:
-    """``(fraction, background, jitter, max_side)`` of a watermark config's ``reading`` section."""
-    return (
+@dataclasses.dataclass(frozen=True)
+class ReadOptions:
+    """How the decoder reads an image: a ``window`` of that fraction of the shorter side (0: the whole
+    image) centred on what differs from ``background`` (None: on the image's centre), its logits averaged
+    over the windows moved by up to ``jitter`` pixels, each read at most ``max_side`` pixels a side (0: as it
+    is). Hashable, so a jitted reader takes it as one static argument."""
+
+    window: float = 0.0
+    background: float | None = 1.0
+    jitter: int = 0
+    max_side: int = 0
+
+
+WHOLE_IMAGE = ReadOptions()  # the whole image, read once at its own size
+
+
+def window_of(images: jax.Array, read: ReadOptions) -> jax.Array:
+    """:func:`read_window` of images ``[B, H, W, 3]`` with ``read``'s window, background and side (one read:
+    ``read.jitter`` is for :func:`jittered_logits`)."""
+    return read_window(images, read.window, read.background, max_side=read.max_side)
+
+
+def of_config(reading: ReadingConfig) -> ReadOptions:
+    """The read options of a watermark config's ``reading`` section."""
+    return ReadOptions(
         float(reading.window),
         background_of(float(reading.background)),
         int(reading.jitter),
@@ -172,10 +195,10 @@ def of_config(reading: ReadingConfig) -> tuple[float, float | None, int, int]:
     )
 
 
-def of_metadata(meta: Mapping[str, Any]) -> tuple[float, float | None, int, int]:
-    """``(fraction, background, jitter, max_side)`` recorded in a decoder file's metadata by ``mnerf embed``
-    (a file without them reads the whole image, once, at its own size)."""
-    return (
+def of_metadata(meta: Mapping[str, Any]) -> ReadOptions:
+    """The read options recorded in a decoder file's metadata by ``mnerf embed`` (a file without them reads
+    the whole image, once, at its own size)."""
+    return ReadOptions(
         float(meta.get("read_window", 0.0)),
         background_of(float(meta.get("read_background", 1.0))),
         int(meta.get("read_jitter", 0)),

@@ -157,5 +157,4 @@ def windowed(cfg: WatermarkConfig, images: jax.Array) -> jax.Array:
     """What the decoder reads of images ``[B, H, W, 3]``: the run's read window (``watermark.reading.window``;
     after the augmentations, as a verifier reads an attacked image), at most ``watermark.reading.max_side``
     pixels a side."""
-    fraction, background, _, max_side = read_window.of_config(cfg.reading)
-    return read_window.read_window(images, fraction, background, max_side=max_side)
+    return read_window.window_of(images, read_window.of_config(cfg.reading))

@@ -18,6 +18,7 @@ and so the PSNR, does not change (results: docs/experiments/).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 from collections.abc import Callable
@@ -115,8 +116,7 @@ def reads_of(images: np.ndarray, cfg: WatermarkConfig) -> np.ndarray:
 
 def _reads(images: np.ndarray, cfg: WatermarkConfig, with_rounded: bool) -> np.ndarray:
     """:func:`reads_of`, or (not ``with_rounded``) only the as-is reads ``[B, S, S', 3]``."""
-    fraction, background, _, max_side = read_window.of_config(cfg.reading)
-    read = _window_reader(fraction, background, max_side, with_rounded)
+    read = _window_reader(dataclasses.replace(read_window.of_config(cfg.reading), jitter=0), with_rounded)
     parts = [
         np.asarray(read(jnp.asarray(images[i : i + VIEWS_PER_CHUNK], jnp.float32)))
         for i in range(0, len(images), VIEWS_PER_CHUNK)
@@ -137,19 +137,17 @@ def attacked_reads(images: np.ndarray, cfg: WatermarkConfig, rng: np.random.Gene
 
 
 @functools.cache
-def _window_reader(
-    fraction: float, background: float | None, side: int, with_rounded: bool
-) -> Callable[[jax.Array], jax.Array]:
-    """:func:`_reads`' jitted step for one reading setting (``read_window.of_config``'s values)."""
+def _window_reader(options: read_window.ReadOptions, with_rounded: bool) -> Callable[[jax.Array], jax.Array]:
+    """:func:`_reads`' jitted step for one reading setting."""
 
     @jax.jit
     def read(images: jax.Array) -> jax.Array:
         if not with_rounded:
-            return read_window.read_window(images, fraction, background, max_side=side)
+            return read_window.window_of(images, options)
         rounded = jnp.round(images * 255.0) / 255.0
         both = jnp.stack([images, rounded], axis=1)  # [B, 2, H, W, 3]
         flat = both.reshape(-1, *images.shape[1:])
-        out = read_window.read_window(flat, fraction, background, max_side=side)
+        out = read_window.window_of(flat, options)
         return out.reshape(images.shape[0], 2, *out.shape[1:])
 
     return read
@@ -325,7 +323,7 @@ def make_refit_step(
     """
     batch = int(cfg.phase3.batch)
     n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.phase3.lambda_clean else 0
-    window, background, _, max_side = read_window.of_config(cfg.reading)  # phase 3 reads as phase 2
+    reading = read_window.of_config(cfg.reading)  # phase 3 reads as phase 2
     tx = refit_optimizer(cfg)
     negative_policy = negative_attacks(cfg)
 
@@ -338,7 +336,7 @@ def make_refit_step(
         rounded = jnp.round(images * 255.0) / 255.0
         images = jnp.where(jax.random.bernoulli(k_round, 0.5, (images.shape[0], 1, 1, 1)), rounded, images)
         images = augment.configured_policy(k_aug, images, cfg.augment)
-        return read_window.read_window(images, window, background, max_side=max_side)
+        return read_window.window_of(images, reading)
 
     def logits_of(params: PyTree, ll2: jax.Array) -> jax.Array:
         return decoder_lib.apply_ll2({**decoder_state, "params": params}, ll2)
@@ -365,7 +363,7 @@ def make_refit_step(
             attacked = augment.configured_policy(
                 k_clean, data.negatives[drawn].astype(jnp.float32) / 255.0, negative_policy
             )
-            clean = read_window.read_window(attacked, window, background, max_side=max_side)
+            clean = read_window.window_of(attacked, reading)
             if data.attacked_negatives is not None:
                 use = jax.random.bernoulli(k_att_neg, cfg.phase3.attacked, (n_neg, 1, 1, 1))
                 clean = jnp.where(use, data.attacked_negatives[drawn].astype(jnp.float32), clean)
