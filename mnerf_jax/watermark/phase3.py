@@ -18,7 +18,6 @@ and so the PSNR, does not change (results: docs/experiments/).
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import time
 from collections.abc import Callable
@@ -116,7 +115,7 @@ def reads_of(images: np.ndarray, cfg: WatermarkConfig) -> np.ndarray:
 
 def _reads(images: np.ndarray, cfg: WatermarkConfig, with_rounded: bool) -> np.ndarray:
     """:func:`reads_of`, or (not ``with_rounded``) only the as-is reads ``[B, S, S', 3]``."""
-    read = _window_reader(dataclasses.replace(read_window.of_config(cfg.reading), jitter=0), with_rounded)
+    read = _window_reader(read_window.of_config(cfg.reading), with_rounded)
     parts = [
         np.asarray(read(jnp.asarray(images[i : i + VIEWS_PER_CHUNK], jnp.float32)))
         for i in range(0, len(images), VIEWS_PER_CHUNK)
