@@ -1,6 +1,6 @@
 """Seconds per embedding step on this machine, and the wall time ``mnerf embed`` would take.
 
-    python scripts/bench_embed_step.py --run RUN [--data PATH] [--num-ids 16] [--bits 16]
+    python scripts/bench_embed_step.py --run RUN [--data PATH] [--num-ids 16] [--bits 16] [--config auto]
                                        [--phase1 6] [--phase2 8] [--set key=value ...] [--json]
 
 RUN is a fitted TensoRF (``mnerf fit``). The script runs ``mnerf embed``'s own code (``embed.embed``, the
@@ -8,8 +8,9 @@ shipped decoder, the run's training views) into a temporary folder for ``--phase
 phase-2 steps, and times every step (the wall time between two steps' callbacks, so budget refits, redone
 steps and checkpoints are inside it). A step's cost does not depend on how many steps the schedule has, so
 the medians of each phase (its first step left out: compilation) times the schedule that the same
-``--num-ids`` and ``--set`` resolve to (``model.phase_steps``), plus the measured start-up, give the
-projected wall time of the whole embedding. The protocol of the README (lego at 1/8, 16 IDs x 16 bits):
+``--num-ids``, ``--config`` (default ``auto``: what the plain ``mnerf embed`` runs) and ``--set`` resolve to
+(``model.phase_steps``), plus the measured start-up, give the projected wall time of the whole embedding.
+The protocol of the README (lego at 1/8, 16 IDs x 16 bits):
 
     python scripts/bench_embed_step.py --run LEGO_RUN --num-ids 16 --bits 16
 """
@@ -57,12 +58,28 @@ class StepClock:
 
 
 def bench(
-    run: str, data: str | None, num_ids: int, bits: int, phase1: int, phase2: int, overrides: list[str]
+    run: str,
+    data: str | None,
+    num_ids: int,
+    bits: int,
+    phase1: int,
+    phase2: int,
+    overrides: list[str],
+    preset: str = "auto",
 ) -> dict:
+    from mnerf_jax.core import embed_defaults
     from mnerf_jax.watermark import embed, model
 
     source = embed.load_source(run)
-    cfg = embed.resolve_config(source, None, overrides, num_ids, bits).watermark
+    chosen, settings = preset, list(overrides)
+    if preset == embed_defaults.AUTO:  # what the plain `mnerf embed` would run, as it chooses it
+        scene = source.load_scene(data, splits=("train",))
+        choice = embed.choose_embedding(source, scene, Path("/nonexistent"), num_ids, resume=False)
+        if choice is not None:
+            chosen, settings = choice.preset, [*choice.settings, *overrides]
+    if chosen in (embed_defaults.AUTO, embed_defaults.FROM_RUN):
+        chosen = None
+    cfg = embed.resolve_config(source, chosen, settings, num_ids, bits).watermark
     schedule = model.phase_steps(cfg)
     short = [
         *overrides,
@@ -76,6 +93,7 @@ def bench(
             Path(tmp) / "wm",
             num_ids,
             bits,
+            preset=preset,
             overrides=short,
             data_path=data,
             progress=False,
@@ -107,10 +125,11 @@ def main() -> None:
     parser.add_argument("--bits", type=int, default=16)
     parser.add_argument("--phase1", type=int, default=6, help="phase-1 steps to time (the first compiles)")
     parser.add_argument("--phase2", type=int, default=8, help="phase-2 steps to time (the first compiles)")
+    parser.add_argument("--config", default="auto", help="as mnerf embed's --config (default: auto)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override")
     parser.add_argument("--json", action="store_true", help="one JSON line")
     args = parser.parse_args()
-    row = bench(args.run, args.data, args.num_ids, args.bits, args.phase1, args.phase2, args.set)
+    row = bench(args.run, args.data, args.num_ids, args.bits, args.phase1, args.phase2, args.set, args.config)
     if args.json:
         print(json.dumps(row))
         return

@@ -964,8 +964,8 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
     dec = jax.random.normal(jax.random.PRNGKey(1), (27, 8)) * 0.1
     message = (jax.random.uniform(jax.random.PRNGKey(2), (4, 8)) > 0.5).astype(jnp.float32)
 
-    def decode(r: jax.Array, p: jax.Array) -> jax.Array:  # a linear stand-in for augment → LL2 → decoder
-        return r.reshape(r.shape[0], -1) @ p
+    def decode(r: jax.Array, p: jax.Array) -> jax.Array:  # a non-linear stand-in for augment → LL2 → decoder
+        return 3.0 * jnp.tanh(r.reshape(r.shape[0], -1) @ p)
 
     def weighted(r: jax.Array, p: jax.Array, w: np.ndarray) -> jax.Array:
         logits = decode(r, p)
@@ -978,7 +978,8 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
     g_plain = jax.grad(weighted, argnums=(0, 1))(renders, dec, uniform)
     for power in (0.0, 1.0, 2.0):
         cfg = wm_config(id_loss_power=power, lambda_key=0.0)
-        term, bce, key = O.message_loss(cfg, decode, renders, dec, message)
+        term, bce, key, logits = O.message_loss(cfg, decode, renders, dec, message)
+        np.testing.assert_allclose(logits, decode(renders, dec), rtol=1e-6)
         np.testing.assert_allclose([term, bce], [per_id.mean()] * 2, rtol=1e-5)
         assert float(key) == 0.0  # lambda_key = 0: no key term
         g_r, g_p = jax.grad(lambda r, p, c=cfg: O.message_loss(c, decode, r, p, message)[0], argnums=(0, 1))(
@@ -992,7 +993,7 @@ def test_id_loss_power_weights_the_renders_gradient_not_the_decoders() -> None:
             ratio = np.abs(np.asarray(g_r)).sum((1, 2, 3)) / np.abs(np.asarray(g_plain[0])).sum((1, 2, 3))
             assert ratio[worst] > 1.0 > ratio[best]
     cfg = wm_config(id_loss_power=2.0, lambda_key=0.0)
-    one, _, _ = O.message_loss(cfg, decode, renders[:1], dec, message[:1])
+    one = O.message_loss(cfg, decode, renders[:1], dec, message[:1]).term
     np.testing.assert_allclose(one, per_id[0], rtol=1e-5)
     with pytest.raises(MnerfError, match="id_loss_power"):
         wm_config(id_loss_power=-1.0)
@@ -1009,7 +1010,7 @@ def test_key_term_is_the_key_cross_entropy_with_its_gradient_to_renders_and_deco
     ids = jnp.array([4, 0, 2])
 
     def decode(r: jax.Array, p: jax.Array) -> jax.Array:
-        return r.reshape(r.shape[0], -1) @ p
+        return 3.0 * jnp.tanh(r.reshape(r.shape[0], -1) @ p)
 
     def direct(r: jax.Array, p: jax.Array) -> jax.Array:
         return losses.key_cross_entropy(decode(r, p), keys, ids)

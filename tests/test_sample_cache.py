@@ -16,6 +16,7 @@ from mnerf_jax.core.config import ModelConfig
 from mnerf_jax.core.config import watermark_from_flat as wm_config
 from mnerf_jax.core.errors import MnerfError
 from mnerf_jax.tensorf import field, raymarch, render
+from mnerf_jax.tensorf import run as runs
 from mnerf_jax.watermark import embed as E
 from mnerf_jax.watermark import model as W
 from mnerf_jax.watermark import run as wm_run
@@ -154,6 +155,13 @@ def test_a_tiny_embed_with_a_cached_source_trains_only_the_watermark(tiny: TinyR
     rendered = wm_run.render_every_id(wm, split.cameras)
     for n in (0, 1):
         np.testing.assert_allclose(from_cache[n].reshape(rendered[n].shape), rendered[n], atol=1e-4)
+    # The null column of the same pass is the clean model's render; the IDs' columns are unchanged.
+    with_clean, clean = wm_run.render_every_id_and_clean(wm, split.cameras)
+    np.testing.assert_allclose(clean, np.stack(runs.render_views(source, split.cameras)), atol=1e-5)
+    for n in (0, 1):
+        np.testing.assert_allclose(with_clean[n], rendered[n], atol=1e-5)
+    with pytest.raises(MnerfError, match="trained"):  # an adapting source: no conditioning renders it
+        wm_run.render_every_id_and_clean(wm_run.load_watermarked_run(tiny.wm), split.cameras)
     # Resumed, it is finished; resumed without the switch, it is another config.
     again = E.embed(
         tiny.fit, out, 2, 8, resume=True, overrides=overrides, decoder_path=tiny.decoder, progress=False

@@ -155,6 +155,15 @@ def patch_keys(key: jax.Array, num_patches: int) -> jax.Array:
 # ------------------------------------------------------------------------------------------- rendering
 
 
+def materialised(cotangent: jax.Array) -> jax.Array:
+    """``cotangent [R, C]`` computed once into memory before a render's pullback reads it. The pullback gathers
+    each sample's ray from it; left free, XLA fuses the image loss's whole gradient into that per-sample gather
+    and recomputes it for every sample of the ray. XLA:CPU fuses through reductions and drops optimisation
+    barriers, but never fuses a matrix product into its consumer: the product with the identity (exact for
+    finite values) is the barrier, at ``R·C²`` multiply-adds."""
+    return cotangent @ jnp.eye(cotangent.shape[-1], dtype=cotangent.dtype)
+
+
 def render_patches(
     render_fn: RenderFn, params: PyTree, rays: PyTree, index: jax.Array, keys: jax.Array
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
@@ -268,7 +277,7 @@ def deferred_grad(
         (loss_img, aux), (g_image, g_extra) = image_grad(image, extra)
         cot = g_image.reshape(height * width, -1)[idx] * layout_owner[0][:, None]
         loss_p, g_rgb = jax.value_and_grad(lambda r: _patch_term(patch_loss_fn, r, targets[idx], shape))(rgb)
-        (grads,) = pullback((cot + g_rgb).astype(rgb.dtype))
+        (grads,) = pullback(materialised((cot + g_rgb).astype(rgb.dtype)))
         return _deferred_result(loss_img, aux, loss_p, stats, image, grads, g_extra)
     image, stats = render_image(render_fn, params, rays, layout_index, layout_owner, key, height, width)
     (loss_img, aux), (g_image, g_extra) = image_grad(image, extra)

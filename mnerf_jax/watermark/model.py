@@ -287,6 +287,19 @@ def condition_many(params: Params, indices: Array, cfg: WatermarkConfig) -> Any:
     return jax.vmap(lambda i: condition(params, i, cfg))(jnp.asarray(indices, jnp.int32))
 
 
+def null_renders_source(cfg: WatermarkConfig) -> bool:
+    """True when a null FiLM conditioning (``γ = β = 0``, :func:`with_null_condition`) renders exactly the
+    fitted field the watermark was embedded into: FiLM enters the last layer additively and the fitted field
+    did not train."""
+    return uses_film(cfg) and injection(cfg) == "last" and not trains_source(cfg)
+
+
+def with_null_condition(cond: Any) -> Any:
+    """A :func:`condition_many` cond of K IDs with a (K+1)-th whose ``γ`` and ``β`` are zero: its colour is
+    the fitted field's own where :func:`null_renders_source`."""
+    return jax.tree.map(lambda x: jnp.concatenate([x, jnp.zeros_like(x[:1])]), cond)
+
+
 def is_multi(cond: Any) -> bool:
     """True for a :func:`condition_many` cond (a leading ``[K]`` axis on every leaf)."""
     if cond is None:

@@ -6,7 +6,7 @@ config turns on. :mod:`mnerf_jax.watermark.step` assembles them into one step's 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -98,6 +98,41 @@ def patch_loss(cfg: WatermarkConfig, rgb: jax.Array, target: jax.Array) -> jax.A
     return loss
 
 
+class MessageTerms(NamedTuple):
+    """What :func:`message_loss` returns: the term to minimise (a surrogate whose gradients are the weighted
+    ones), the mean BCE, the key term, and the renders' logits ``[K, L]`` (no gradient; the step's bit
+    accuracy reads them when the decoder saw the renders unaugmented)."""
+
+    term: jax.Array
+    bce: jax.Array
+    key: jax.Array
+    logits: jax.Array
+
+
+def decode_two_ways(
+    decode: Callable[[jax.Array, PyTree], jax.Array],
+) -> Callable[[jax.Array, PyTree], tuple[jax.Array, jax.Array]]:
+    """``decode`` evaluated once, returned twice: the first copy's cotangent reaches only the decoder's
+    parameters, the second's only the renders. The same values and gradients as two passes with
+    ``stop_gradient`` on either side, for one forward pass (the two pullbacks each keep half of theirs)."""
+
+    @jax.custom_vjp
+    def both(renders: jax.Array, params: PyTree) -> tuple[jax.Array, jax.Array]:
+        logits = decode(renders, params)
+        return logits, logits
+
+    def forward(renders: jax.Array, params: PyTree) -> tuple[tuple[jax.Array, jax.Array], Any]:
+        logits, pullback = jax.vjp(decode, renders, params)
+        return (logits, logits), pullback
+
+    def backward(pullback: Any, cotangents: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, PyTree]:
+        to_params, to_renders = cotangents
+        return pullback(to_renders)[0], pullback(to_params)[1]
+
+    both.defvjp(forward, backward)
+    return both
+
+
 def message_loss(
     cfg: WatermarkConfig,
     decode: Callable[[jax.Array, PyTree], jax.Array],
@@ -106,15 +141,15 @@ def message_loss(
     message: jax.Array,
     keys: jax.Array | None = None,
     ids: jax.Array | None = None,
-) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """``(message term, mean BCE, key term)`` of ``decode(renders [K, H, W, 3], dec_params) -> logits
-    [K, L]`` against ``message [K, L]`` (BCE at ``bce_temperature``).
+) -> MessageTerms:
+    """The message term, mean BCE, key term and logits of ``decode(renders [K, H, W, 3], dec_params) ->
+    logits [K, L]`` against ``message [K, L]`` (BCE at ``bce_temperature``).
 
     The term is the mean BCE; with ``id_loss_power`` p > 0 and K > 1 its gradient to the renders is that of
     the mean of the K BCEs weighted by ``BCE_k^p`` (held constant; the renders read worst weigh most), while
     the decoder's stays the plain mean's, and so does the term's value. Weighting the decoder's gradient too
-    taught it the weak IDs' keys on barely marked renders, so it claimed clean renders. This costs a second
-    decoder pass.
+    taught it the weak IDs' keys on barely marked renders, so it claimed clean renders. One decoder pass
+    serves both sides (:func:`decode_two_ways`).
 
     The key term (zero unless ``lambda_key`` > 0, which needs every ID's message ``keys [N, L]`` and the
     renders' ``ids [K]``) is :func:`losses.key_cross_entropy` on the same logits, its gradient to both
@@ -134,14 +169,13 @@ def message_loss(
     if cfg.losses.id_loss_power <= 0 or renders.shape[0] == 1:
         logits = decode(renders, dec_params)
         bce = losses.bce_with_logits(logits, message, cfg.losses.bce_temperature)
-        return bce, bce, key_term(logits)
+        return MessageTerms(bce, bce, key_term(logits), jax.lax.stop_gradient(logits))
 
     def per_id(z: jax.Array) -> jax.Array:
         return jax.vmap(lambda zk, mk: losses.bce_with_logits(zk, mk, cfg.losses.bce_temperature))(z, message)
 
-    # The decoder's gradient and the value through this pass (renders held), the renders' through the next.
-    z_dec = decode(jax.lax.stop_gradient(renders), dec_params)
-    z_field = decode(renders, jax.lax.stop_gradient(dec_params))
+    # The decoder's gradient and the value through z_dec (renders held), the renders' through z_field.
+    z_dec, z_field = decode_two_ways(decode)(renders, dec_params)
     bce_k = per_id(z_dec)
     weight = jax.lax.stop_gradient(bce_k) ** cfg.losses.id_loss_power
     weight = weight / jnp.maximum(jnp.sum(weight), jnp.finfo(jnp.float32).tiny)
@@ -150,7 +184,8 @@ def message_loss(
     field = jnp.sum(weight * field_k)
     key_field = key_term(z_field)
     key = key_term(z_dec) + key_field - jax.lax.stop_gradient(key_field)
-    return bce + field - jax.lax.stop_gradient(field), bce, key
+    term = bce + field - jax.lax.stop_gradient(field)
+    return MessageTerms(term, bce, key, jax.lax.stop_gradient(z_dec))
 
 
 def windowed(cfg: WatermarkConfig, images: jax.Array) -> jax.Array:

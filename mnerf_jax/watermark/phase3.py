@@ -39,6 +39,7 @@ from mnerf_jax.reader import dwt, read_window
 from mnerf_jax.reader import keys as keys_lib
 from mnerf_jax.reader.train import cover_images
 from mnerf_jax.tensorf import run as runs
+from mnerf_jax.watermark import model as watermark
 from mnerf_jax.watermark import run as wm_run
 from mnerf_jax.watermark import time_budget as embed_budget
 from mnerf_jax.watermark.novel_views import novel_cameras
@@ -241,6 +242,8 @@ def render_refit_set(
     if attack is not None and training_renders is not None:
         attacked.append({n: attack(r) for n, r in training_renders.items()})
     negatives = [keep_clean(ground_truth)]
+    # A frozen source's clean renders come from the watermarked pass itself (one geometry pass, not two).
+    null_is_clean = watermark.null_renders_source(run.config.watermark)
     if clean_model is not None and clean_renders is not None:
         negatives.append(keep_clean(clean_renders))  # the training views' (sets[0]), given
     try:
@@ -250,13 +253,20 @@ def render_refit_set(
                 if novel and first and not render_more():
                     break
                 chunk = range(first, min(first + VIEWS_PER_CHUNK, len(cams)))
+                wants_clean = clean_model is not None and (novel or clean_renders is None)
+                clean = None
                 if novel or training_renders is None:
-                    rendered = wm_run.render_every_id(run, cams, chunk, on_view=tick)
+                    if wants_clean and null_is_clean:
+                        rendered, clean = wm_run.render_every_id_and_clean(run, cams, chunk, on_view=tick)
+                    else:
+                        rendered = wm_run.render_every_id(run, cams, chunk, on_view=tick)
                     parts.append({n: keep(r) for n, r in rendered.items()})
                     if attack is not None:
                         attacked.append({n: attack(r) for n, r in rendered.items()})
-                if clean_model is not None and (novel or clean_renders is None):
-                    negatives.append(keep_clean(np.stack(runs.render_views(clean_model, cams, chunk))))
+                if wants_clean:
+                    if clean is None:
+                        clean = np.stack(runs.render_views(clean_model, cams, chunk))
+                    negatives.append(keep_clean(clean))
     finally:
         bar.close()
     renders = np.stack([np.concatenate([part[n] for part in parts]) for n in range(keys.num_ids)])

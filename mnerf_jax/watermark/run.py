@@ -201,11 +201,30 @@ def render_with_ids(
     ids = [keys_lib.check_id(i, int(run.extras["num_ids"])) for i in ids]
     if len(ids) == 1:
         return {ids[0]: render_with_id(run, ids[0], cameras, indices, on_view=on_view, **kwargs)}
+    return _render_columns(run, ids, False, cameras, indices, on_view, **kwargs)[0]
+
+
+def _render_columns(
+    run: runs.LoadedRun,
+    ids: Sequence[int],
+    with_clean: bool,
+    cameras: Any,
+    indices: Sequence[int] | None,
+    on_view: Callable[[int, np.ndarray], None] | None,
+    **kwargs: Any,
+) -> tuple[dict[int, list[np.ndarray]], list[np.ndarray] | None]:
+    """One geometry pass per view for the IDs ``ids`` and, with ``with_clean``, the null conditioning after
+    them: ``({ID: [[H, W, 3], ...]}, clean [[H, W, 3], ...] or None)``; ``on_view`` sees the IDs' columns."""
     cond = watermark.condition_many(run.params, np.asarray(ids, np.int32), run.config.watermark)
+    if with_clean:
+        cond = watermark.with_null_condition(cond)
+    width = 3 * len(ids)
+    view_cb = None if on_view is None else (lambda v, rgb: on_view(v, rgb[..., :width]))  # noqa: E731
     stacked = runs.render_views(
-        dataclasses.replace(run, cond=cond), cameras, indices, on_view=on_view, **kwargs
+        dataclasses.replace(run, cond=cond), cameras, indices, on_view=view_cb, **kwargs
     )
-    return {n: [img[..., 3 * k : 3 * k + 3] for img in stacked] for k, n in enumerate(ids)}
+    renders = {n: [img[..., 3 * k : 3 * k + 3] for img in stacked] for k, n in enumerate(ids)}
+    return renders, [img[..., width:] for img in stacked] if with_clean else None
 
 
 # IDs rendered together by render_every_id: one geometry pass per view serves them all.
@@ -229,6 +248,30 @@ def render_every_id(
         out = render_with_ids(run, range(first, min(first + group, n_ids)), cameras, indices, on_view=on_view)
         renders.update({n: np.stack(images) for n, images in out.items()})
     return renders
+
+
+def render_every_id_and_clean(
+    run: runs.LoadedRun,
+    cameras: Any,
+    indices: Sequence[int] | None = None,
+    *,
+    on_view: Callable[[int, np.ndarray], None] | None = None,
+) -> tuple[dict[int, np.ndarray], np.ndarray]:
+    """:func:`render_every_id` plus the fitted field's own render of each view ``[V, H, W, 3]``, taken from
+    the first geometry pass as one more column (the null conditioning), for a run where that is exact
+    (``watermark.null_renders_source``): a separate render of the clean model costs a whole geometry pass."""
+    if not watermark.null_renders_source(run.config.watermark):
+        raise EmbedError(f"{run.run_dir}: its fitted field trained, so no conditioning renders the source")
+    n_ids = int(run.extras["num_ids"])
+    renders: dict[int, np.ndarray] = {}
+    clean: list[np.ndarray] | None = None
+    for first in range(0, n_ids, IDS_PER_RENDER):
+        ids = list(range(first, min(first + IDS_PER_RENDER, n_ids)))
+        out, views = _render_columns(run, ids, first == 0, cameras, indices, on_view)
+        renders.update({n: np.stack(images) for n, images in out.items()})
+        clean = views if first == 0 else clean
+    assert clean is not None  # n_ids >= 1
+    return renders, np.stack(clean)
 
 
 def require_watermarked(run_dir: str | Path) -> dict[str, Any]:

@@ -238,8 +238,8 @@ def make_image_loss(
 
     def image_loss(image: jax.Array, dec_params: PyTree) -> tuple[jax.Array, dict[str, jax.Array]]:
         renders = split_renders(image)  # [K, H, W, 3]
-        term, bce, key = message_loss(cfg, decode, renders, dec_params, message, keys, ids)
-        loss = cfg.losses.lambda_message * term + cfg.losses.lambda_key * key
+        terms = message_loss(cfg, decode, renders, dec_params, message, keys, ids)
+        loss = cfg.losses.lambda_message * terms.term + cfg.losses.lambda_key * terms.key
         if spec.phase == 2 and cfg.losses.lambda_clean:
             clean_logits = decode(negative[None], dec_params)
             loss = loss + cfg.losses.lambda_clean * losses.bce_with_logits(
@@ -250,7 +250,7 @@ def make_image_loss(
             targets = jnp.broadcast_to(target_image, renders.shape)
             perc = perceptual_loss(cfg.losses.perceptual, renders, targets, vgg_params)
             loss = loss + cfg.losses.lambda_perceptual * perc
-        aux = {"bce": bce, "key": key, "perceptual": perc}
+        aux = {"bce": terms.bce, "key": terms.key, "perceptual": perc, "logits": terms.logits}
         if uses_fidelity(cfg):
             aux["fidelity"], aux["mse_clean"] = fidelity_loss(cfg, renders, reference, fidelity_budget)
             loss = loss + cfg.fidelity.weight * aux["fidelity"]
@@ -330,9 +330,12 @@ def embed_step(
     tx = make_optimizer(cfg, spec.adam_b1, spec.adam_b2, total)
     updates, opt_state = tx.update(grads, state.opt_state, values)
     new_values = optax.apply_updates(values, updates)
-    # Bit accuracy of the renders as they are (no augmentation), with the decoder before this update.
+    # Bit accuracy of the renders as they are (no augmentation), with the decoder before this update: the
+    # loss's own logits where its decoder saw them so, else one more decoder pass.
     renders = split_renders(image)
-    logits = decoder_lib.apply_ll2(state.decoder, dwt.ll2(windowed(cfg, renders), cfg.reading.wavelet))
+    logits = aux["logits"]
+    if spec.phase == 2 and augment.draws_any(cfg.augment):
+        logits = decoder_lib.apply_ll2(state.decoder, dwt.ll2(windowed(cfg, renders), cfg.reading.wavelet))
     metrics = {
         "loss": loss,
         "loss_image": aux["loss_image"],
