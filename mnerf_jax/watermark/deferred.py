@@ -156,11 +156,11 @@ def patch_keys(key: jax.Array, num_patches: int) -> jax.Array:
 
 
 def materialised(cotangent: jax.Array) -> jax.Array:
-    """``cotangent [R, C]`` computed once into memory before a render's pullback reads it. The pullback gathers
-    each sample's ray from it; left free, XLA fuses the image loss's whole gradient into that per-sample gather
-    and recomputes it for every sample of the ray. XLA:CPU fuses through reductions and drops optimisation
-    barriers, but never fuses a matrix product into its consumer: the product with the identity (exact for
-    finite values) is the barrier, at ``R·C²`` multiply-adds."""
+    """``cotangent [R, C]`` computed once into memory before a render's pullback reads it. The pullback
+    gathers each sample's ray from it; left free, XLA fuses the image loss's whole gradient into that
+    per-sample gather and recomputes it for every sample of the ray. XLA:CPU fuses through reductions and
+    drops optimisation barriers, but never fuses a matrix product into its consumer: the product with the
+    identity (exact for finite values) is the barrier, at ``R·C²`` multiply-adds."""
     return cotangent @ jnp.eye(cotangent.shape[-1], dtype=cotangent.dtype)
 
 
