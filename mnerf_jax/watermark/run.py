@@ -241,13 +241,7 @@ def render_every_id(
     """Evaluation renders of ``cameras`` by every ID of the run, :data:`IDS_PER_RENDER` IDs per geometry pass
     (one at a time where renders do not depend on the ID): ``{ID: [V, H, W, 3]}``. ``on_view`` as
     :func:`render_with_ids`."""
-    n_ids = int(run.extras["num_ids"])
-    group = IDS_PER_RENDER if watermark.uses_ids(run.config.watermark) else 1
-    renders: dict[int, np.ndarray] = {}
-    for first in range(0, n_ids, group):
-        out = render_with_ids(run, range(first, min(first + group, n_ids)), cameras, indices, on_view=on_view)
-        renders.update({n: np.stack(images) for n, images in out.items()})
-    return renders
+    return _render_every_id(run, cameras, indices, on_view, with_clean=False)[0]
 
 
 def render_every_id_and_clean(
@@ -262,16 +256,33 @@ def render_every_id_and_clean(
     (``watermark.null_renders_source``): a separate render of the clean model costs a whole geometry pass."""
     if not watermark.null_renders_source(run.config.watermark):
         raise EmbedError(f"{run.run_dir}: its fitted field trained, so no conditioning renders the source")
+    renders, clean = _render_every_id(run, cameras, indices, on_view, with_clean=True)
+    assert clean is not None  # the first group always renders the null column
+    return renders, clean
+
+
+def _render_every_id(
+    run: runs.LoadedRun,
+    cameras: Any,
+    indices: Sequence[int] | None,
+    on_view: Callable[[int, np.ndarray], None] | None,
+    with_clean: bool,
+) -> tuple[dict[int, np.ndarray], np.ndarray | None]:
+    """Every ID's renders in groups of :data:`IDS_PER_RENDER`, with ``with_clean`` the null column in the
+    first group's pass: ``({ID: [V, H, W, 3]}, clean [V, H, W, 3] or None)``."""
     n_ids = int(run.extras["num_ids"])
+    group = IDS_PER_RENDER if watermark.uses_ids(run.config.watermark) else 1
     renders: dict[int, np.ndarray] = {}
-    clean: list[np.ndarray] | None = None
-    for first in range(0, n_ids, IDS_PER_RENDER):
-        ids = list(range(first, min(first + IDS_PER_RENDER, n_ids)))
-        out, views = _render_columns(run, ids, first == 0, cameras, indices, on_view)
+    clean = None
+    for first in range(0, n_ids, group):
+        ids = list(range(first, min(first + group, n_ids)))
+        if with_clean and first == 0:
+            out, views = _render_columns(run, ids, True, cameras, indices, on_view)
+            clean = np.stack(views)
+        else:
+            out = render_with_ids(run, ids, cameras, indices, on_view=on_view)
         renders.update({n: np.stack(images) for n, images in out.items()})
-        clean = views if first == 0 else clean
-    assert clean is not None  # n_ids >= 1
-    return renders, np.stack(clean)
+    return renders, clean
 
 
 def require_watermarked(run_dir: str | Path) -> dict[str, Any]:
