@@ -7,9 +7,10 @@ decoder's training record says otherwise, or ``--psnr``):
   field carries the watermark), read with no attack and under the Low policy (``--draws`` random draws);
 - **encoder**: the HiDDeN encoder's images: ``--encoder FILE`` (a run's ``encoder.npz``), or the encoder
   shipped with a ``--bits`` decoder when the package has one;
-- ``--read-side S``: every read sees each image downscaled to at most S pixels a side, as
-  ``watermark.reading.max_side`` reads renders, and the encoder writes for that read (its pattern carried to
-  the image by the adjoint of the downscale, as Video Seal and Watermark Anything upsample their residual);
+- ``--read-side S`` (default ``watermark.reading.max_side``'s, as ``mnerf extract`` reads; 0: as is): every
+  read sees each image downscaled to at most S pixels a side, and the encoder writes for that read (its
+  pattern carried to the image by the adjoint of the downscale, as Video Seal and Watermark Anything
+  upsample their residual);
 - **clean**: the share of 1 bits on the clean images, and the largest and mean per-bit bias ``|P[1] − ½|``
   (a decoder whose clean reads are fair keeps these near 0: the decision's p-values assume it).
 
@@ -87,8 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--read-side",
         type=int,
-        default=0,
-        help="read images downscaled to at most this side, as watermark.reading.max_side (0: as is)",
+        default=None,
+        help="read images downscaled to at most this side (0: as is; default: watermark.reading.max_side's "
+        "default, as mnerf extract reads a render)",
     )
     parser.add_argument("--json", action="store_true", help="print the result as JSON, not a table")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON to this file")
@@ -96,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from mnerf_jax.core import rundir
     from mnerf_jax.core.errors import MnerfError
+    from mnerf_jax.core.watermark_config import ReadingConfig
     from mnerf_jax.reader import decoder_io
     from mnerf_jax.reader.train import evaluation, hidden_encoder
     from mnerf_jax.reader.train.recipe import DecoderTrainConfig
@@ -117,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
             cfg = dataclasses.replace(cfg, eval_augment_draws=args.draws)
         if args.psnr is not None:
             cfg = dataclasses.replace(cfg, target_psnr=args.psnr)
+        if args.read_side is None:
+            args.read_side = ReadingConfig().max_side
         if args.images < 1:
             raise MnerfError(f"--images must be at least 1, got {args.images}")
         t0 = time.perf_counter()

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mnerf_jax.core.watermark_config import ReadingConfig
 from mnerf_jax.reader.train import evaluation
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,8 +44,11 @@ def test_eval_decoder_reports_every_side(tmp_path: Path, make_decoder, capsys) -
         clean = row["clean"]
         assert 0.0 <= clean["bias_mean"] <= clean["bias_max"] <= 0.5 and 0.0 <= clean["ones_mean"] <= 1.0
         assert "encoder" not in row
+    # By default the script reads as mnerf extract reads a render.
+    assert _script().main([*argv, "--draws", "0", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["read_side"] == ReadingConfig().max_side
     # The table names every side; bad input is one line.
-    assert _script().main([*argv, "--draws", "0"]) == 0
+    assert _script().main([*argv, "--draws", "0", "--read-side", "0"]) == 0
     table = capsys.readouterr().out
     assert "| 16px |" in table and "| 32px |" in table
     assert _script().main(["--decoder", str(tmp_path / "absent.npz"), "--sizes", "16"]) == 2
