@@ -179,3 +179,53 @@ def test_a_run_with_the_sections_folds_with_one_written_before_them(tmp_path: Pa
     runs = [compare.load_run_figures(p) for p in (old, new)]
     assert compare.varying_settings(runs) == []
     assert runs[1].settings["losses.lambda_key"] == 0.2
+
+
+def write_attack_scores(
+    run: Path, suite: str, rows: dict[str, tuple[float, float]], model: bool = False
+) -> None:
+    """``mnerf attack``'s score file for ``suite``: per attack (bit accuracy, false-claim rate)."""
+    kind = "model-attacks" if model else "attacks"
+    attacks = {
+        name: {
+            "bit_accuracy_mean": bits,
+            "bit_accuracy_min": bits - 0.1,
+            "identification_accuracy": bits,
+            "verified_identification_accuracy": bits - 0.2,
+            "false_claim_rate": claims,
+        }
+        for name, (bits, claims) in rows.items()
+    }
+    scores = {"attacks": attacks, "order": list(rows)}
+    (run / f"eval-test-{kind}-{suite}.json").write_text(json.dumps(scores))
+
+
+def test_attack_rows_summarise_each_attack_over_the_seeds(four_runs: list[Path], capsys) -> None:
+    for run, (noise, claims) in zip(
+        four_runs, [(0.8, 0.0), (0.7, 0.01), (0.9, 0.03), (0.6, 0.0)], strict=True
+    ):
+        write_attack_scores(run, "peers", {"none": (0.99, 0.0), "noise": (noise, claims)})
+    groups = compare.compare_runs(four_runs, attacks=compare.AttackSuite("peers"))
+    assert groups[0].attack_names() == ["none", "noise"]
+    assert groups[0].attack_stats("noise", "bits") == pytest.approx((0.85, 0.8, 0.9))
+    assert groups[0].attack_stats("noise", "false_claims") == pytest.approx((0.015, 0.0, 0.03))
+    table = compare.attack_table(groups)
+    assert "| losses.lambda_key=0.1 | 2 | noise | 85.0 % (80.0 % – 90.0 %) |" in table
+    assert cli.main(["compare", *map(str, four_runs), "--attacks", "peers", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["groups"][1]["attack_stats"]["noise"]["bits"] == pytest.approx(
+        {"mean": 0.65, "min": 0.6, "max": 0.7}
+    )
+    assert data["groups"][1]["runs"][0]["attacks"]["none"]["named"] == pytest.approx(0.79)
+
+
+def test_attacks_on_the_model_are_their_own_files_and_a_missing_one_names_its_command(
+    four_runs: list[Path], capsys
+) -> None:
+    for run in four_runs:
+        write_attack_scores(run, "model", {"quantise8": (0.99, 0.0)}, model=True)
+    groups = compare.compare_runs(four_runs, attacks=compare.AttackSuite("model", model=True))
+    assert groups[1].attack_stats("quantise8", "bits") == pytest.approx((0.99, 0.99, 0.99))
+    assert cli.main(["compare", *map(str, four_runs), "--attacks", "peers"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "mnerf attack --run" in err[0] and "--suite peers" in err[0]

@@ -8,8 +8,9 @@ from pathlib import Path
 
 NAME = "compare"
 HELP = (
-    "Tabulate watermarked runs' evaluations (eval-<split>.json), grouped by the [watermark] settings "
-    "they differ in; each setting's runs (seeds) as mean and range."
+    "Tabulate watermarked runs' evaluations (eval-<split>.json), and with --attacks their scores under an "
+    "attack suite, grouped by the [watermark] settings they differ in; each setting's runs (seeds) as mean "
+    "and range."
 )
 
 
@@ -36,6 +37,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE.png",
         help="also plot each run's PSNR drop against its bit accuracy",
     )
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument(
+        "--attacks",
+        metavar="SUITE",
+        help="also tabulate each run's scores under this mnerf attack --suite "
+        "(eval-<split>-attacks-SUITE.json)",
+    )
+    which.add_argument(
+        "--model-attacks",
+        metavar="SUITE",
+        help="also tabulate each run's scores under this mnerf attack --model-suite",
+    )
     parser.add_argument("--json", action="store_true", help="print JSON instead of the tables")
 
 
@@ -43,7 +56,10 @@ def run(args: argparse.Namespace) -> int:
     from mnerf_jax.evaluation import compare
 
     extra = [f.strip() for f in args.ignore.split(",") if f.strip()]
-    groups = compare.compare_runs(args.runs, args.split, (*compare.IGNORED_BY_DEFAULT, *extra))
+    attacks = None
+    if args.attacks or args.model_attacks:
+        attacks = compare.AttackSuite(args.attacks or args.model_attacks, model=bool(args.model_attacks))
+    groups = compare.compare_runs(args.runs, args.split, (*compare.IGNORED_BY_DEFAULT, *extra), attacks)
     if args.plot is not None:
         compare.tradeoff_plot(args.plot, groups)
     if args.json:
@@ -52,6 +68,9 @@ def run(args: argparse.Namespace) -> int:
     print(compare.runs_table(groups))
     print()
     print(compare.summary_table(groups))
+    if attacks is not None:
+        print()
+        print(compare.attack_table(groups))
     if args.plot is not None:
         print(f"\nplot: {args.plot}")
     return 0

@@ -18,6 +18,11 @@ Figures (fractions in [0, 1] except the dB and LPIPS ones):
   renders named as some ID.
 - ``psnr`` (dB against the ground truth), ``psnr_drop`` (dB, the watermarked renders' PSNR less the clean
   model's: negative is a loss), ``lpips``.
+
+With ``attacks`` (``mnerf compare --attacks SUITE`` / ``--model-attacks SUITE``) each run's scores under an
+attack suite (``mnerf attack``'s JSON) are read too, and :func:`attack_table` gives one row per setting and
+attack: ``bits``, ``bits_worst_id``, ``best_match``, ``named`` (by the run's decision) and
+``false_claims`` (the clean model's renders under the same attack named as a key), each over the seeds.
 """
 
 from __future__ import annotations
@@ -61,6 +66,40 @@ FIGURES: tuple[tuple[str, str, str], ...] = (
 )
 
 
+# (figure, format, header) of the attack rows, and the key each figure has in ``mnerf attack``'s JSON.
+ATTACK_FIGURES: tuple[tuple[str, str, str], ...] = (
+    ("bits", "pct", "bits"),
+    ("bits_worst_id", "pct", "worst ID"),
+    ("best_match", "pct", "best match"),
+    ("named", "pct", "named"),
+    ("false_claims", "pct", "false claims"),
+)
+ATTACK_KEYS: Mapping[str, str] = {
+    "bits": "bit_accuracy_mean",
+    "bits_worst_id": "bit_accuracy_min",
+    "best_match": "identification_accuracy",
+    "named": "verified_identification_accuracy",
+    "false_claims": "false_claim_rate",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class AttackSuite:
+    """Which of ``mnerf attack``'s score files to read: a suite of attacks on the renders, or (``model``) on
+    the watermarked field (evaluation.attacks.attacks_path, evaluation.model_attacks)."""
+
+    suite: str
+    model: bool = False
+
+    def file_name(self, split: str) -> str:
+        kind = "model-attacks" if self.model else "attacks"
+        return f"eval-{split}-{kind}-{self.suite}.json"
+
+    def command(self, run: Path, split: str) -> str:
+        option = "--model-suite" if self.model else "--suite"
+        return f"mnerf attack --run {run} --split {split} {option} {self.suite}"
+
+
 class CompareError(MnerfError):
     """A run that cannot be compared: not a watermarked run, or not evaluated on the split."""
 
@@ -75,6 +114,8 @@ class RunFigures:
     views: int
     num_ids: int
     bits: int
+    # Per attack (in the suite's order), the ATTACK_FIGURES; empty unless a suite was asked for.
+    attacks: Mapping[str, Mapping[str, float | None]] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,10 +127,25 @@ class Group:
 
     def stats(self, figure: str) -> tuple[float, float, float] | None:
         """(mean, lowest, highest) of ``figure`` over the runs that report it; None when none does."""
-        values = [r.figures[figure] for r in self.runs if r.figures.get(figure) is not None]
-        if not values:
-            return None
-        return sum(values) / len(values), min(values), max(values)
+        return _stats([r.figures.get(figure) for r in self.runs])
+
+    def attack_names(self) -> list[str]:
+        """The attacks any run was scored under, in the first run's order, then any others'."""
+        names: dict[str, None] = {}
+        for r in self.runs:
+            names |= dict.fromkeys(r.attacks)
+        return list(names)
+
+    def attack_stats(self, attack: str, figure: str) -> tuple[float, float, float] | None:
+        """(mean, lowest, highest) of an attack row's ``figure`` over the runs scored under it."""
+        return _stats([(r.attacks.get(attack) or {}).get(figure) for r in self.runs])
+
+
+def _stats(values: Iterable[float | None]) -> tuple[float, float, float] | None:
+    kept = [v for v in values if v is not None]
+    if not kept:
+        return None
+    return sum(kept) / len(kept), min(kept), max(kept)
 
 
 # Plain JSON reads, not rundir.read_marker / read_run_config: those import the checkpoint stack (JAX, Orbax),
@@ -154,8 +210,26 @@ def figures_of(result: Mapping[str, Any]) -> dict[str, float | None]:
     }
 
 
-def load_run_figures(run_dir: str | Path, split: str = "test") -> RunFigures:
-    """A watermarked run's settings and its figures on ``split``; CompareError when it has none."""
+def attack_figures_of(result: Mapping[str, Any], where: Path) -> dict[str, dict[str, float | None]]:
+    """The ATTACK_FIGURES of every attack of one ``mnerf attack`` score file, in its order."""
+    rows = result.get("attacks")
+    if not isinstance(rows, Mapping):
+        raise CompareError(f"{where}: not a file of mnerf attack's scores")
+    order = [a for a in result.get("order") or [] if a in rows] or list(rows)
+    return {
+        attack: {
+            figure: None if rows[attack].get(key) is None else float(rows[attack][key])
+            for figure, key in ATTACK_KEYS.items()
+        }
+        for attack in order
+    }
+
+
+def load_run_figures(
+    run_dir: str | Path, split: str = "test", attacks: AttackSuite | None = None
+) -> RunFigures:
+    """A watermarked run's settings and its figures on ``split`` (and under ``attacks``); CompareError when
+    it has none."""
     path = Path(run_dir)
     if not path.is_dir():
         raise CompareError(f"{path}: no such run directory")
@@ -178,6 +252,12 @@ def load_run_figures(run_dir: str | Path, split: str = "test") -> RunFigures:
     except ConfigError as err:
         raise CompareError(f"{path}/config.json: {err}") from None
     settings["source_run"] = marker.get("source_run")
+    scores: dict[str, dict[str, float | None]] = {}
+    if attacks is not None:
+        where = path / attacks.file_name(split)
+        scores = attack_figures_of(
+            _read_json(where, f"score it first: {attacks.command(path, split)}"), where
+        )
     return RunFigures(
         path=path,
         settings=settings,
@@ -185,6 +265,7 @@ def load_run_figures(run_dir: str | Path, split: str = "test") -> RunFigures:
         views=int(result.get("views", 0)),
         num_ids=int(result.get("num_ids", 0)),
         bits=int(result.get("bits", 0)),
+        attacks=scores,
     )
 
 
@@ -216,12 +297,15 @@ def group_runs(runs: Sequence[RunFigures], ignore: Iterable[str] = IGNORED_BY_DE
 
 
 def compare_runs(
-    run_dirs: Sequence[str | Path], split: str = "test", ignore: Iterable[str] = IGNORED_BY_DEFAULT
+    run_dirs: Sequence[str | Path],
+    split: str = "test",
+    ignore: Iterable[str] = IGNORED_BY_DEFAULT,
+    attacks: AttackSuite | None = None,
 ) -> list[Group]:
     """Load every run (all errors before any output) and group them (module docstring)."""
     if not run_dirs:
         raise CompareError("no runs given")
-    return group_runs([load_run_figures(d, split) for d in run_dirs], ignore)
+    return group_runs([load_run_figures(d, split, attacks) for d in run_dirs], ignore)
 
 
 # ----------------------------------------------------------------------------------------------- output
@@ -252,21 +336,35 @@ def runs_table(groups: Sequence[Group]) -> str:
     return "\n".join(lines)
 
 
+def _spread(kind: str, stats: tuple[float, float, float] | None, runs: int) -> str:
+    """``mean (lowest – highest)``; the value alone for one run; — for none."""
+    if stats is None:
+        return "—"
+    if runs == 1:
+        return _format(kind, stats[0])
+    return f"{_format(kind, stats[0])} ({_format(kind, stats[1])} – {_format(kind, stats[2])})"
+
+
 def summary_table(groups: Sequence[Group]) -> str:
     """Markdown: one row per setting, each figure as mean (lowest – highest) over its runs."""
     head = ["setting", "runs", *(h for _, _, h in FIGURES)]
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     for g in groups:
-        cells = [g.label, str(len(g.runs))]
-        for f, k, _ in FIGURES:
-            s = g.stats(f)
-            if s is None:
-                cells.append("—")
-            elif len(g.runs) == 1:
-                cells.append(_format(k, s[0]))
-            else:
-                cells.append(f"{_format(k, s[0])} ({_format(k, s[1])} – {_format(k, s[2])})")
+        cells = [g.label, str(len(g.runs)), *(_spread(k, g.stats(f), len(g.runs)) for f, k, _ in FIGURES)]
         lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def attack_table(groups: Sequence[Group]) -> str:
+    """Markdown: one row per setting and attack, each figure as mean (lowest – highest) over its runs."""
+    head = ["setting", "runs", "attack", *(h for _, _, h in ATTACK_FIGURES)]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for g in groups:
+        for attack in g.attack_names():
+            scored = sum(attack in r.attacks for r in g.runs)
+            cells = [g.label, str(scored), attack]
+            cells += [_spread(k, g.attack_stats(attack, f), scored) for f, k, _ in ATTACK_FIGURES]
+            lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -289,10 +387,15 @@ def to_json(groups: Sequence[Group]) -> dict[str, Any]:
                         "num_ids": r.num_ids,
                         "bits": r.bits,
                         "figures": dict(r.figures),
+                        "attacks": {a: dict(row) for a, row in r.attacks.items()},
                     }
                     for r in g.runs
                 ],
                 "stats": {f: _stats_record(g.stats(f)) for f, _, _ in FIGURES},
+                "attack_stats": {
+                    a: {f: _stats_record(g.attack_stats(a, f)) for f, _, _ in ATTACK_FIGURES}
+                    for a in g.attack_names()
+                },
             }
             for g in groups
         ]
