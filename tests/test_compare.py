@@ -229,3 +229,13 @@ def test_attacks_on_the_model_are_their_own_files_and_a_missing_one_names_its_co
     assert cli.main(["compare", *map(str, four_runs), "--attacks", "peers"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "mnerf attack --run" in err[0] and "--suite peers" in err[0]
+
+
+def test_attack_score_files_are_named_as_mnerf_attack_writes_them(tmp_path: Path) -> None:
+    from mnerf_jax.evaluation import attacks, model_attacks
+
+    assert (
+        compare.AttackSuite("peers").file_name("test") == attacks.attacks_path(tmp_path, "test", "peers").name
+    )
+    model = compare.AttackSuite("model", model=True).file_name("path")
+    assert model == model_attacks.model_attacks_path(tmp_path, "path", "model").name

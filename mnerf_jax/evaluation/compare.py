@@ -66,14 +66,7 @@ FIGURES: tuple[tuple[str, str, str], ...] = (
 )
 
 
-# (figure, format, header) of the attack rows, and the key each figure has in ``mnerf attack``'s JSON.
-ATTACK_FIGURES: tuple[tuple[str, str, str], ...] = (
-    ("bits", "pct", "bits"),
-    ("bits_worst_id", "pct", "worst ID"),
-    ("best_match", "pct", "best match"),
-    ("named", "pct", "named"),
-    ("false_claims", "pct", "false claims"),
-)
+# Each attack figure's key in ``mnerf attack``'s JSON, in table order; and its (figure, format, header).
 ATTACK_KEYS: Mapping[str, str] = {
     "bits": "bit_accuracy_mean",
     "bits_worst_id": "bit_accuracy_min",
@@ -81,6 +74,12 @@ ATTACK_KEYS: Mapping[str, str] = {
     "named": "verified_identification_accuracy",
     "false_claims": "false_claim_rate",
 }
+ATTACK_FIGURES: tuple[tuple[str, str, str], ...] = tuple(
+    (figure, "pct", header)
+    for figure, header in zip(
+        ATTACK_KEYS, ("bits", "worst ID", "best match", "named", "false claims"), strict=True
+    )
+)
 
 
 @dataclasses.dataclass(frozen=True)
