@@ -9,7 +9,7 @@ import pytest
 
 from mnerf_jax import cli
 from mnerf_jax.core import rundir
-from mnerf_jax.evaluation import compare
+from mnerf_jax.evaluation import attacks, compare, model_attacks
 
 BASE_SETTINGS = {
     "lambda_key": 0.2,
@@ -185,8 +185,7 @@ def write_attack_scores(
     run: Path, suite: str, rows: dict[str, tuple[float, float]], model: bool = False
 ) -> None:
     """``mnerf attack``'s score file for ``suite``: per attack (bit accuracy, false-claim rate)."""
-    kind = "model-attacks" if model else "attacks"
-    attacks = {
+    per_attack = {
         name: {
             "bit_accuracy_mean": bits,
             "bit_accuracy_min": bits - 0.1,
@@ -196,8 +195,13 @@ def write_attack_scores(
         }
         for name, (bits, claims) in rows.items()
     }
-    scores = {"attacks": attacks, "order": list(rows)}
-    (run / f"eval-test-{kind}-{suite}.json").write_text(json.dumps(scores))
+    scores = {"attacks": per_attack, "order": list(rows)}
+    path = (
+        model_attacks.model_attacks_path(run, "test", suite)
+        if model
+        else attacks.attacks_path(run, "test", suite)
+    )
+    path.write_text(json.dumps(scores))
 
 
 def test_attack_rows_summarise_each_attack_over_the_seeds(four_runs: list[Path], capsys) -> None:
@@ -232,8 +236,6 @@ def test_attacks_on_the_model_are_their_own_files_and_a_missing_one_names_its_co
 
 
 def test_attack_score_files_are_named_as_mnerf_attack_writes_them(tmp_path: Path) -> None:
-    from mnerf_jax.evaluation import attacks, model_attacks
-
     assert (
         compare.AttackSuite("peers").file_name("test") == attacks.attacks_path(tmp_path, "test", "peers").name
     )

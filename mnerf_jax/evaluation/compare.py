@@ -66,19 +66,17 @@ FIGURES: tuple[tuple[str, str, str], ...] = (
 )
 
 
-# Each attack figure's key in ``mnerf attack``'s JSON, in table order; and its (figure, format, header).
-ATTACK_KEYS: Mapping[str, str] = {
-    "bits": "bit_accuracy_mean",
-    "bits_worst_id": "bit_accuracy_min",
-    "best_match": "identification_accuracy",
-    "named": "verified_identification_accuracy",
-    "false_claims": "false_claim_rate",
-}
+# The attack rows' figures in table order: (figure, its key in ``mnerf attack``'s JSON, header).
+_ATTACK_COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("bits", "bit_accuracy_mean", "bits"),
+    ("bits_worst_id", "bit_accuracy_min", "worst ID"),
+    ("best_match", "identification_accuracy", "best match"),
+    ("named", "verified_identification_accuracy", "named"),
+    ("false_claims", "false_claim_rate", "false claims"),
+)
+ATTACK_KEYS: Mapping[str, str] = {figure: key for figure, key, _ in _ATTACK_COLUMNS}
 ATTACK_FIGURES: tuple[tuple[str, str, str], ...] = tuple(
-    (figure, "pct", header)
-    for figure, header in zip(
-        ATTACK_KEYS, ("bits", "worst ID", "best match", "named", "false claims"), strict=True
-    )
+    (figure, "pct", header) for figure, _, header in _ATTACK_COLUMNS
 )
 
 
