@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import textwrap
+import types
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -414,3 +415,16 @@ def test_a_study_end_to_end_records_failures_and_resumes_after_a_kill(
     assert header[:3] == ["study", "cell_id", "status"] and "attack_low_named" in header
     assert len(header) == len(set(header))
     assert first in (study / "results.md").read_text()
+
+
+def test_results_table_says_where_the_time_budget_stopped_an_embedding() -> None:
+    spec = types.SimpleNamespace(name="s")
+    base = {"phase1_steps": 100, "phase2_steps": 1100, "bit_acc": 0.5}
+    rows = [
+        {"cell_id": "cut", "status": "done", "embed_steps": 661, "embed_stopped_by_budget": True, **base},
+        {"cell_id": "whole", "status": "done", "embed_steps": 1200, "embed_stopped_by_budget": False, **base},
+        {"cell_id": "waiting", "status": "pending", "embed_stopped_by_budget": None},
+    ]
+    lines = {line.split(" | ")[0]: line for line in results.to_markdown(spec, rows).splitlines()}
+    assert "| done, stopped by the time budget at step 661 of 1,200 |" in lines["| `cut`"]
+    assert "| done |" in lines["| `whole`"] and "| pending |" in lines["| `waiting`"]

@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
+import shutil
 
 import numpy as np
 import pytest
-from conftest import EVALUATION_KEYS
+from conftest import EVALUATION_KEYS, PROJECT_ROOT
 
+from mnerf_jax.evaluation import attacks as wm_attacks
 from mnerf_jax.evaluation import plots, report
 from mnerf_jax.evaluation import watermarked as V
+from mnerf_jax.watermark import decision
 
 # ---------------------------------------------------------------------------------------------- report
 
@@ -192,8 +196,6 @@ def test_report_from_a_real_evaluation(tiny_eval, tmp_path) -> None:
 
 
 def test_attack_scores_count_bits_and_names() -> None:
-    from mnerf_jax.evaluation import attacks as wm_attacks
-
     messages = np.array([[1, 0, 1, 1, 0, 0, 1, 0], [0, 1, 1, 0, 1, 0, 0, 1]], np.float32)
     logits = np.where(messages[:, None] > 0.5, 3.0, -3.0).repeat(4, axis=1)  # [2 IDs, 4 views, 8 bits]
     logits[1, :, 0] *= -1.0  # ID 1 reads its first bit wrong on every view
@@ -204,8 +206,6 @@ def test_attack_scores_count_bits_and_names() -> None:
 
 
 def test_attacks_on_the_saved_renders(tiny_eval, mnerf) -> None:
-    from mnerf_jax.evaluation import attacks as wm_attacks
-
     runs, _ = tiny_eval
     saved = json.loads((runs.wm / "eval-test.json").read_text())
     result = wm_attacks.evaluate_attacks(runs.wm, "test", "high", ["box_blur", "gaussian_noise"])
@@ -272,6 +272,45 @@ def test_attack_suite_peers_end_to_end(tiny_eval, mnerf) -> None:
     assert path.with_suffix(".png").is_file()
 
 
+def _claimed_keys_script():
+    path = PROJECT_ROOT / "scripts" / "claimed_keys.py"
+    spec = importlib.util.spec_from_file_location("claimed_keys_script", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_claimed_keys_counts_what_attack_reports(tiny_eval, tmp_path, monkeypatch) -> None:
+    # scripts/claimed_keys.py reads the clean renders as `mnerf attack` does: through the run's decoder, one
+    # draw of each attack names the same renders as the attack's false claims, key by key. A loose threshold
+    # (the tiny run's 8 bits and 2 keys cannot reach 1e-3) so that some are named.
+    runs, _ = tiny_eval
+    run = tmp_path / "wm"
+    shutil.copytree(runs.wm, run, ignore=shutil.ignore_patterns("eval-test-attacks*"))
+    loose = 0.3
+    rule = decision.decision_rule
+    monkeypatch.setattr(
+        decision, "decision_rule", lambda run, reading, print_, *_: rule(run, reading, print_, loose)
+    )
+    attacks = ["gaussian_noise0.1", "brightness2", "jpeg10"]
+    scored = wm_attacks.evaluate_attacks(run, "test", suite="peers")
+    out = tmp_path / "claimed.json"
+    argv = ["--run", str(run), "--attacks", ",".join(attacks), "--seeds", "1", "--threshold", str(loose)]
+    assert _claimed_keys_script().main([*argv, "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert sorted(r["attack"] for r in rows) == sorted(a for a in attacks for _ in range(3))  # suite order
+    assert {r["decoder"].split(" (")[0] for r in rows} == {"run", "field end", "shipped"}
+    views = scored["views"]
+    for row in rows:
+        assert row["reads"] == views and sum(row["named_per_key"]) == row["named"] <= views
+        assert row["renders_named_more_than_once"] == 0  # one draw
+        if row["decoder"] == "run":
+            assert row["named_per_key"] == scored["attacks"][row["attack"]]["claimed_per_id"]
+    assert any(r["named"] for r in rows if r["decoder"] == "run")
+    # An attack the suite does not have: one line, exit 2.
+    assert _claimed_keys_script().main(["--run", str(run), "--attacks", "jpeg3"]) == 2
+
+
 REGEN_HOOK = """
 import numpy as np
 def mirror(images):
@@ -283,8 +322,6 @@ def floats(images):
 
 
 def test_attack_regen_hook_without_clean_renders_loses_nothing(tiny_eval, mnerf, tmp_path) -> None:
-    import shutil
-
     runs, _ = tiny_eval
     run = tmp_path / "wm"
     shutil.copytree(runs.wm, run, ignore=shutil.ignore_patterns("checkpoints", "tb", "eval-test-attacks*"))
@@ -310,8 +347,6 @@ def test_attack_regen_hook_without_clean_renders_loses_nothing(tiny_eval, mnerf,
 
 
 def test_attack_codec_model_row_from_a_torch_weights_file(tiny_eval, mnerf, tmp_path) -> None:
-    import shutil
-
     from test_compression_models import random_factorized, save_state_dict
 
     runs, _ = tiny_eval

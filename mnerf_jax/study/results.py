@@ -323,6 +323,15 @@ def _beside(r: Mapping[str, Any], metric: str, kind: str) -> str:
     return measured if paper is None else f"{measured} ({_show(paper, kind)})"
 
 
+def _status(r: Mapping[str, Any]) -> str:
+    """The cell's status, and where the time budget stopped its embedding, at which of its steps: such a
+    cell's figures are not those of the study's schedule."""
+    if r["status"] != "done" or not r.get("embed_stopped_by_budget"):
+        return str(r["status"])
+    planned = (r.get("phase1_steps") or 0) + (r.get("phase2_steps") or 0)
+    return f"done, stopped by the time budget at step {r.get('embed_steps')} of {planned:,}"
+
+
 def to_markdown(spec: StudySpec, rows: Sequence[Mapping[str, Any]]) -> str:
     """A short report: every cell's main figures, the paper's in brackets where it has one."""
     head = ["cell", "status", "bit acc. (paper)", "PNG", "worst ID", "named", "clean claimed", "PSNR (paper)"]
@@ -339,7 +348,7 @@ def to_markdown(spec: StudySpec, rows: Sequence[Mapping[str, Any]]) -> str:
     for r in rows:
         cells = [
             f"`{r['cell_id']}`",
-            r["status"],
+            _status(r),
             _beside(r, "bit_acc", "pct"),
             _show(r.get("bit_acc_png"), "pct"),
             _show(r.get("bit_acc_worst_id"), "pct"),
