@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import dataclasses
 import fcntl
+import importlib.util
 import os
 import shutil
+import sys
 import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
@@ -263,6 +266,16 @@ class TinyRuns:
     wm: Path
     seconds: float
     embed_overrides: tuple[str, ...] = tuple(TINY_EMBED)
+
+
+def load_script(name: str) -> ModuleType:
+    """``scripts/<name>.py`` imported as a module (the scripts are not a package), so that tests call its
+    ``main(argv)`` and helpers in-process."""
+    spec = importlib.util.spec_from_file_location(name, PROJECT_ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
 
 
 def random_decoder(path: Path, bits: int, images: np.ndarray | None = None) -> Path:

@@ -4,27 +4,15 @@ structure of its output, not its timings)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _script(name: str) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+from conftest import load_script
 
 
 def test_step_clock_medians_leave_each_phase_first_step_out() -> None:
-    clock = _script("bench_embed_step").StepClock(start=0.0)
+    clock = load_script("bench_embed_step").StepClock(start=0.0)
     for stamp, phase in [(5.0, 1), (6.0, 1), (7.0, 1), (17.0, 2), (19.0, 2), (21.0, 2), (23.0, 2)]:
         clock.stamps.append(stamp)
         clock.phases.append(phase)
@@ -33,14 +21,14 @@ def test_step_clock_medians_leave_each_phase_first_step_out() -> None:
 
 
 def test_growth_exponents_are_log_log_slopes() -> None:
-    scale = _script("bench_embed_scale")
+    scale = load_script("bench_embed_scale")
     assert scale.slope([1e4, 4e4, 16e4], [1.0, 4.0, 16.0]) == 1.0
     assert scale.slope([4, 16, 64], [2.0, 2.0, 2.0]) == 0.0
     assert scale.slope([100], [1.0]) is None and scale.slope([1, 2], [None, 3.0]) is None
 
 
 def test_bench_embed_scale_reports_every_figure(tiny, tmp_path: Path, capsys) -> None:
-    scale = _script("bench_embed_scale")
+    scale = load_script("bench_embed_scale")
     out = tmp_path / "scale.json"
     # One configuration (each runs in a process of its own, compiling everything again): the growth lines
     # over several are test_growth_lines_take_every_size_and_every_id_count's.
@@ -85,7 +73,7 @@ def test_bench_embed_scale_reports_every_figure(tiny, tmp_path: Path, capsys) ->
 
 
 def test_growth_lines_take_every_size_and_every_id_count() -> None:
-    scale = _script("bench_embed_scale")
+    scale = load_script("bench_embed_scale")
     # Step time ∝ pixels × IDs^0.5, memory ∝ pixels, projection flat; one failed row is left out.
     rows = [
         {

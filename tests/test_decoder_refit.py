@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from conftest import load_script
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -630,13 +631,7 @@ def test_the_refit_set_keeps_each_image_read_after_real_attacks_when_asked(tiny:
 
 
 def test_the_refit_script_redoes_phase_three_into_a_copy(tiny: TinyRuns, tmp_path, capsys) -> None:
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "refit_phase3.py"
-    spec = importlib.util.spec_from_file_location("refit_phase3_script", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("refit_phase3")
     keys_before, decoder_before = wm_run.load_keys_and_decoder(tiny.wm)
     out = tmp_path / "refit"
     phase3 = {"steps": 6, "batch": 4, "views": 2, "attacked": 0.5}

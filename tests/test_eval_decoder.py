@@ -2,23 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
+from conftest import load_script
 
 from mnerf_jax.core.watermark_config import ReadingConfig
 from mnerf_jax.reader.train import evaluation
 
-ROOT = Path(__file__).resolve().parents[1]
 
-
-def _script():
-    spec = importlib.util.spec_from_file_location("eval_decoder_script", ROOT / "scripts" / "eval_decoder.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def _main(argv: list[str]) -> int:
+    return load_script("eval_decoder").main(argv)
 
 
 def test_batches_hold_about_the_same_pixels_at_every_side() -> None:
@@ -32,7 +27,7 @@ def test_eval_decoder_reports_every_side(tmp_path: Path, make_decoder, capsys) -
     decoder = make_decoder(tmp_path / "dec8.npz", 8)
     out = tmp_path / "sizes.json"
     argv = ["--decoder", str(decoder), "--sizes", "16,32", "--images", "3", "--iterations", "1"]
-    code = _script().main([*argv, "--draws", "0", "--json", "--out", str(out), "--read-side", "16"])
+    code = _main([*argv, "--draws", "0", "--json", "--out", str(out), "--read-side", "16"])
     assert code == 0
     printed = json.loads(capsys.readouterr().out)
     assert printed == json.loads(out.read_text())
@@ -45,13 +40,13 @@ def test_eval_decoder_reports_every_side(tmp_path: Path, make_decoder, capsys) -
         assert 0.0 <= clean["bias_mean"] <= clean["bias_max"] <= 0.5 and 0.0 <= clean["ones_mean"] <= 1.0
         assert "encoder" not in row
     # By default the script reads as mnerf extract reads a render.
-    assert _script().main([*argv, "--draws", "0", "--json"]) == 0
+    assert _main([*argv, "--draws", "0", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["read_side"] == ReadingConfig().max_side
     # The table names every side; bad input is one line.
-    assert _script().main([*argv, "--draws", "0", "--read-side", "0"]) == 0
+    assert _main([*argv, "--draws", "0", "--read-side", "0"]) == 0
     table = capsys.readouterr().out
     assert "| 16px |" in table and "| 32px |" in table
-    assert _script().main(["--decoder", str(tmp_path / "absent.npz"), "--sizes", "16"]) == 2
+    assert _main(["--decoder", str(tmp_path / "absent.npz"), "--sizes", "16"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("eval_decoder: error:")
 
@@ -68,7 +63,7 @@ def test_eval_decoder_reads_an_encoder_writing_for_the_downscaled_read(
     encoder = tmp_path / "encoder.npz"
     hidden_encoder.save_encoder(encoder, hidden_encoder.init_encoder(jax.random.PRNGKey(0), 8), cfg)
     argv = ["--decoder", str(decoder), "--encoder", str(encoder), "--sizes", "16,48", "--images", "2"]
-    code = _script().main([*argv, "--iterations", "1", "--draws", "0", "--read-side", "16", "--json"])
+    code = _main([*argv, "--iterations", "1", "--draws", "0", "--read-side", "16", "--json"])
     assert code == 0
     printed = json.loads(capsys.readouterr().out)
     assert printed["encoder"] == str(encoder) and printed["target_psnr"] == 30.0
@@ -79,7 +74,7 @@ def test_eval_decoder_reads_an_encoder_writing_for_the_downscaled_read(
     other = tmp_path / "encoder16.npz"
     enc16 = hidden_encoder.init_encoder(jax.random.PRNGKey(0), 16)
     hidden_encoder.save_encoder(other, enc16, recipe.DecoderTrainConfig(bits=16))
-    assert _script().main(["--decoder", str(decoder), "--encoder", str(other), "--sizes", "16"]) == 2
+    assert _main(["--decoder", str(decoder), "--encoder", str(other), "--sizes", "16"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "writes 16-bit messages" in err[0]
 

@@ -4,21 +4,19 @@ tiny watermarked run (``tiny`` of conftest.py)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import load_script
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
 from mnerf_jax.evaluation import false_claims as F
 from mnerf_jax.reader import calibration as C
-
-ROOT = Path(__file__).resolve().parents[1]
 
 # ---------------------------------------------------------------------------------------- the calibration
 
@@ -121,13 +119,6 @@ def test_quotas_and_sources() -> None:
 # --------------------------------------------------------------------------------- the script, end to end
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("false_claims_script", ROOT / "scripts" / "false_claims.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_false_claims_script_calibrates_what_extract_prints(tiny, tmp_path: Path, capsys, mnerf) -> None:
     run = tmp_path / "wm"
     shutil.copytree(tiny.wm, run, ignore=shutil.ignore_patterns("eval-*", "tb", "checkpoints"))
@@ -138,7 +129,7 @@ def test_false_claims_script_calibrates_what_extract_prints(tiny, tmp_path: Path
     code, out, _ = mnerf("extract", "--run", run, image)
     assert code == 0 and "uncalibrated: scripts/false_claims.py" in out.splitlines()[-1]
 
-    script = _script()
+    script = load_script("false_claims")
     argv = ["--run", str(run), "--images", "200", "--suite", "codecs", "--views", "2", "--quiet"]
     assert script.main(argv) == 0
     printed = capsys.readouterr().out

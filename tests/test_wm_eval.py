@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 
 import numpy as np
 import pytest
-from conftest import EVALUATION_KEYS, PROJECT_ROOT
+from conftest import EVALUATION_KEYS, load_script
 
 from mnerf_jax.evaluation import attacks as wm_attacks
 from mnerf_jax.evaluation import plots, report
@@ -272,14 +271,6 @@ def test_attack_suite_peers_end_to_end(tiny_eval, mnerf) -> None:
     assert path.with_suffix(".png").is_file()
 
 
-def _claimed_keys_script():
-    path = PROJECT_ROOT / "scripts" / "claimed_keys.py"
-    spec = importlib.util.spec_from_file_location("claimed_keys_script", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_claimed_keys_counts_what_attack_reports(tiny_eval, tmp_path, monkeypatch) -> None:
     # scripts/claimed_keys.py reads the clean renders as `mnerf attack` does: through the run's decoder, one
     # draw of each attack names the same renders as the attack's false claims, key by key. A loose threshold
@@ -296,7 +287,7 @@ def test_claimed_keys_counts_what_attack_reports(tiny_eval, tmp_path, monkeypatc
     scored = wm_attacks.evaluate_attacks(run, "test", suite="peers")
     out = tmp_path / "claimed.json"
     argv = ["--run", str(run), "--attacks", ",".join(attacks), "--seeds", "1", "--threshold", str(loose)]
-    assert _claimed_keys_script().main([*argv, "--json", str(out)]) == 0
+    assert load_script("claimed_keys").main([*argv, "--json", str(out)]) == 0
     rows = json.loads(out.read_text())["rows"]
     assert sorted(r["attack"] for r in rows) == sorted(a for a in attacks for _ in range(3))  # suite order
     assert {r["decoder"].split(" (")[0] for r in rows} == {"run", "field end", "shipped"}
@@ -308,7 +299,7 @@ def test_claimed_keys_counts_what_attack_reports(tiny_eval, tmp_path, monkeypatc
             assert row["named_per_key"] == scored["attacks"][row["attack"]]["claimed_per_id"]
     assert any(r["named"] for r in rows if r["decoder"] == "run")
     # An attack the suite does not have: one line, exit 2.
-    assert _claimed_keys_script().main(["--run", str(run), "--attacks", "jpeg3"]) == 2
+    assert load_script("claimed_keys").main(["--run", str(run), "--attacks", "jpeg3"]) == 2
 
 
 REGEN_HOOK = """
