@@ -42,25 +42,18 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
 
     from mnerf_jax.core import rundir
-    from mnerf_jax.core.checkpoint import CheckpointStore
     from mnerf_jax.core.errors import MnerfError
     from mnerf_jax.evaluation import attacks as attack_eval
     from mnerf_jax.evaluation import watermarked as wm_eval
     from mnerf_jax.reader import extract, identification
     from mnerf_jax.watermark import decision
     from mnerf_jax.watermark import run as wm_run
-    from mnerf_jax.watermark.step import total_steps
 
     try:
         keys, decoder = wm_run.load_keys_and_decoder(args.run)
         wm = rundir.read_run_config(args.run).watermark
         rule = decision.decision_rule(args.run, wm.reading, decoder.fingerprint, args.threshold)
-        store = CheckpointStore(args.run, create=False)
-        try:
-            field_step = max(s for s in store.all_steps() if s <= total_steps(wm))
-            _, tree, _ = wm_run.restore(store, args.run, field_step)
-        finally:
-            store.close()
+        field_step, tree = wm_run.restore_field_end(args.run, wm)
         decoders = {
             "run": decoder,
             f"field end (step {field_step})": dataclasses.replace(

@@ -41,7 +41,6 @@ def main(argv: list[str] | None = None) -> int:
 
     from mnerf_jax.core import config as config_lib
     from mnerf_jax.core import rundir
-    from mnerf_jax.core.checkpoint import CheckpointStore
     from mnerf_jax.core.errors import MnerfError
     from mnerf_jax.reader import decoder_io
     from mnerf_jax.reader import keys as keys_lib
@@ -49,7 +48,6 @@ def main(argv: list[str] | None = None) -> int:
     from mnerf_jax.watermark import run as wm_run
     from mnerf_jax.watermark.inputs import clean_references
     from mnerf_jax.watermark.loop import DECODER_FILE
-    from mnerf_jax.watermark.step import total_steps
 
     try:
         marker = wm_run.require_watermarked(args.run)
@@ -59,19 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = config.watermark
         if not cfg.phase3.steps:
             raise MnerfError("watermark.phase3.steps is 0: nothing to refit (--set watermark.phase3.steps=N)")
-        store = CheckpointStore(args.run, create=False)
-        try:
-            field_end = total_steps(cfg)
-            steps = [s for s in store.all_steps() if s <= field_end]
-            field_step = args.field_step if args.field_step is not None else (max(steps) if steps else None)
-            if field_step is None or field_step not in store.all_steps():
-                raise MnerfError(
-                    f"{args.run}: no checkpoint {field_step} within the field's {field_end} steps "
-                    f"(kept: {store.all_steps()})"
-                )
-            _, tree, _ = wm_run.restore(store, args.run, field_step)
-        finally:
-            store.close()
+        field_step, tree = wm_run.restore_field_end(args.run, cfg, args.field_step)
         shutil.copytree(args.run, args.out, ignore=shutil.ignore_patterns(*NOT_COPIED))
         rundir.write_json_atomic(args.out / rundir.CONFIG_FILE, config.to_dict())
         run = wm_run.load_watermarked_run(args.out)

@@ -106,6 +106,25 @@ def restore(
     return config, tree, meta
 
 
+def restore_field_end(run_dir: Path, cfg: WatermarkConfig, step: int | None = None) -> tuple[int, dict]:
+    """``(step, checkpoint tree)`` of the checkpoint phase 3 starts from: ``step`` when given, else the last
+    one within the field's schedule (``cfg``'s phases 1 and 2). EmbedError when there is none."""
+    store = CheckpointStore(run_dir, create=False)
+    try:
+        field_end = sum(watermark.phase_steps(cfg))
+        kept = store.all_steps()
+        within = [s for s in kept if s <= field_end]
+        chosen = step if step is not None else (max(within) if within else None)
+        if chosen is None or chosen not in kept:
+            raise EmbedError(
+                f"{run_dir}: no checkpoint {chosen} within the field's {field_end} steps (kept: {kept})"
+            )
+        _, tree, _ = restore(store, run_dir, chosen)
+    finally:
+        store.close()
+    return chosen, tree
+
+
 def _keys_and_decoder(run_dir: Path) -> tuple[keys_lib.KeySet, decoder_io.LoadedDecoder]:
     """``keys.json`` and ``decoder.npz`` of a watermarked run, checked against each other."""
     if not (run_dir / DECODER_FILE).is_file():
