@@ -606,6 +606,46 @@ def test_phase_three_reads_its_attacked_copies_at_the_configured_share() -> None
     assert loss(0.0, garbage) == pytest.approx(loss(0.0, data), rel=1e-6)
 
 
+def test_noisy_negatives_add_bounded_noise_to_a_quarter_of_the_images() -> None:
+    # Mid-grey images, so that clipping at 0 and 1 is rare at σ ≤ 0.1: each changed image's residual has a
+    # standard deviation within the bound, the unchanged ones are exact, and about a quarter change.
+    images = jnp.full((800, 16, 16, 3), 0.5, jnp.float32)
+    noisy = np.asarray(decoder_refit.noisy_negatives(jax.random.key(0), images, 0.1))
+    residual = (noisy - 0.5).reshape(800, -1)
+    changed = np.abs(residual).max(axis=1) > 0
+    share = decoder_refit.NOISY_NEGATIVES_SHARE
+    assert abs(changed.mean() - share) < 4 * np.sqrt(share * (1 - share) / 800)  # binomial, 4 sd
+    assert residual[changed].std(axis=1).max() < 0.1 * 1.1 and (residual[~changed] == 0).all()
+    assert noisy.min() >= 0.0 and noisy.max() <= 1.0
+    assert (
+        np.asarray(decoder_refit.noisy_negatives(jax.random.key(0), images, 0.0)).tolist()
+        == np.asarray(images).tolist()
+    )  # σ bound 0: nothing changes
+
+
+def test_phase_three_noises_its_negatives_only_when_asked() -> None:
+    # negative_noise 0 is today's step draw for draw; above 0 the negatives (and so the loss) change. A
+    # batch of 64 has 16 negatives, so some are noised (the threefry draws are the same on every machine).
+    data, variables = _two_class_set()
+
+    def loss(**phase3: float) -> float:
+        cfg = wm_config(
+            phase3={"steps": 10, "batch": 64, **phase3},
+            augment_prob=0.0,
+            augment_names=FEW_ATTACKS,
+            read_window=1.0,
+        )
+        step = decoder_refit.make_refit_step(cfg, variables)
+        opt_state = decoder_refit.refit_optimizer(cfg).init(variables["params"])
+        arrays = jax.tree.map(jnp.asarray, data)
+        return float(step(variables["params"], opt_state, jax.random.key(5), arrays, 0, 10)[2])
+
+    assert loss(negative_noise=0.0) == loss()
+    assert loss(negative_noise=0.5) != pytest.approx(loss(), rel=1e-4)
+    with pytest.raises(MnerfError, match="negative_noise"):
+        wm_config(phase3={"steps": 10, "negative_noise": 1.5})
+
+
 def test_the_refit_set_keeps_each_image_read_after_real_attacks_when_asked(tiny: TinyRuns) -> None:
     # Without the clean model's renders (test_the_refit_set_reuses_clean_renders_... has them); without
     # phase3.attacked no copies are kept (tests/test_llff_ndc.py).

@@ -307,6 +307,10 @@ class Phase3Config:
     # The share of each batch's renders, and of its negatives, read after a real attack (imaging's
     # training_attacks: codecs, noise, colour, blur, warps), drawn once per image before the steps; 0: none.
     attacked: float = 0.0
+    # Gaussian noise of σ ~ U(0, negative_noise) ([0, 1] units) on a quarter of the negatives besides their
+    # attacks: a decoder that saw only the policy's fixed σ names heavily noised clean renders as one key
+    # (docs/experiments/); 0: none.
+    negative_noise: float = 0.0
     reserve_min: float = 0.0  # minutes of the time budget kept for phase 3
 
     def __post_init__(self) -> None:
@@ -317,10 +321,12 @@ class Phase3Config:
             and self.lr > 0
             and self.reserve_min >= 0
             and self.lambda_clean >= 0
-            and 0.0 <= self.attacked <= 1.0,
+            and 0.0 <= self.attacked <= 1.0
+            and 0.0 <= self.negative_noise <= 1.0,
             "watermark.phase3.steps and views must be ≥ 0 (0 steps: no phase 3), batch ≥ 1, lr > 0, "
-            f"reserve_min ≥ 0, lambda_clean ≥ 0 and attacked in [0, 1]; got {self.steps}, {self.views}, "
-            f"{self.batch}, {self.lr}, {self.reserve_min}, {self.lambda_clean}, {self.attacked}",
+            "reserve_min ≥ 0, lambda_clean ≥ 0, attacked and negative_noise in [0, 1]; got "
+            f"{self.steps}, {self.views}, {self.batch}, {self.lr}, {self.reserve_min}, {self.lambda_clean}, "
+            f"{self.attacked}, {self.negative_noise}",
         )
         _require(
             0 <= self.elevation_margin <= 90,

@@ -12,7 +12,8 @@ every view used, and a third as many images from outside the scene); half of the
 bits as a saved PNG is, and the run's phase-2 augmentations apply to them when it has them. With
 ``phase3.attacked`` that share of the renders and of the negatives is read after real attacks instead
 (codecs, noise, colour, blur, warps; ``imaging.training_attacks``), each image's drawn once when the set is
-rendered: no gradient passes through an image here, so the attacks need not be differentiable. The field,
+rendered: no gradient passes through an image here, so the attacks need not be differentiable. With
+``phase3.negative_noise`` a quarter of the negatives also carry Gaussian noise up to that σ. The field,
 and so the PSNR, does not change (results: docs/experiments/).
 """
 
@@ -60,6 +61,10 @@ VIEWS_PER_CHUNK = 8
 GENERIC_PER_SCENE_NEGATIVE = 1 / 3
 GENERIC_SEED = 0x6E6E  # their draw: fixed, and apart from the false-claims measurement's
 ATTACK_STREAM = 0xA77  # the real attacks' draws (phase3.attacked), apart from the novel views' stream
+NOISE_STREAM = 0xB01  # the noisy negatives' draws (phase3.negative_noise): the other draws stay as they were
+# The share of the negatives given phase3.negative_noise's noise: enough to cover its range every step, most
+# left to the attack policy.
+NOISY_NEGATIVES_SHARE = 0.25
 
 
 @flax.struct.dataclass
@@ -98,6 +103,17 @@ def negative_attacks(cfg: WatermarkConfig) -> AugmentConfig:
     return AugmentConfig(
         strength=cfg.phase3.negative_strength, names=cfg.augment.names, per_step=per_step, prob=0.75
     )
+
+
+def noisy_negatives(key: jax.Array, images: jax.Array, sigma_max: float) -> jax.Array:
+    """``images [B, H, W, 3]`` (float in [0, 1]) with :data:`NOISY_NEGATIVES_SHARE` of them, drawn per
+    image, given ``+ N(0, σ²)`` per pixel and channel, ``σ ~ U(0, sigma_max)`` per image, clipped to [0, 1]:
+    the range of noise a verifier's clean images may carry, where the attack policy has one σ."""
+    k_noise, k_sigma, k_use = jax.random.split(key, 3)
+    per_image = (images.shape[0], 1, 1, 1)
+    sigma = jax.random.uniform(k_sigma, per_image, maxval=sigma_max)
+    noisy = jnp.clip(images + sigma * jax.random.normal(k_noise, images.shape), 0.0, 1.0)
+    return jnp.where(jax.random.bernoulli(k_use, NOISY_NEGATIVES_SHARE, per_image), noisy, images)
 
 
 def keeps_reads_only(cfg: WatermarkConfig) -> bool:
@@ -326,9 +342,10 @@ def make_refit_step(
 
     A batch: ``phase3_batch`` renders (ID and view uniform), each rounded to 8 bits with probability ½ and
     through the run's augmentations when phase 2 had them (``augment_prob > 0``), and a quarter as many
-    negatives (8-bit) through :func:`negative_attacks`; then the read window, LL2 and the decoder (eval-mode
-    BatchNorm, as phase 2). With ``data.attacked``, each render and each negative is read after its real
-    attacks instead with probability ``phase3.attacked``.
+    negatives (8-bit) through :func:`negative_attacks` (and :func:`noisy_negatives` with
+    ``phase3.negative_noise``); then the read window, LL2 and the decoder (eval-mode BatchNorm, as phase
+    2). With ``data.attacked``, each render and each negative is read after its real attacks instead with
+    probability ``phase3.attacked``.
     """
     batch = int(cfg.phase3.batch)
     n_neg = max(batch // NEGATIVES_PER_BATCH_DIVISOR, 1) if cfg.phase3.lambda_clean else 0
@@ -372,6 +389,9 @@ def make_refit_step(
             attacked = augment.configured_policy(
                 k_clean, data.negatives[drawn].astype(jnp.float32) / 255.0, negative_policy
             )
+            if cfg.phase3.negative_noise:
+                k_noise = jax.random.fold_in(key, NOISE_STREAM)
+                attacked = noisy_negatives(k_noise, attacked, cfg.phase3.negative_noise)
             clean = read_window.window_of(attacked, reading)
             if data.attacked_negatives is not None:
                 use = jax.random.bernoulli(k_att_neg, cfg.phase3.attacked, (n_neg, 1, 1, 1))
