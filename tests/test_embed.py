@@ -523,9 +523,15 @@ def test_a_time_budget_ends_the_run_early_as_a_prefix_of_the_full_one(tiny: Tiny
     tiny_budget = [*schedule, "watermark.time_budget.minutes=0.001"]
     stopped = E.embed(tiny.fit, root / "b_split", 2, 8, overrides=tiny_budget, **args)
     assert stopped.stopped_by_budget and stopped.steps == 1
-    assert json.loads((root / "b_split" / "embed.json").read_text())["steps_done"] == 1
+    progress = json.loads((root / "b_split" / "embed.json").read_text())
+    assert progress["steps_done"] == 1 and 0 < progress["run_seconds"] <= stopped.run_seconds + 0.01
+    # The budget is the run's: resumed under the same budget, the time its first process spent counts, and
+    # no step is taken.
+    again = E.embed(tiny.fit, root / "b_split", 2, 8, resume=True, overrides=tiny_budget, **args)
+    assert again.stopped_by_budget and again.steps == 1 and again.run_seconds > progress["run_seconds"]
     resumed = E.embed(tiny.fit, root / "b_split", 2, 8, resume=True, overrides=schedule, **args)
     assert resumed.steps == 5 and not resumed.stopped_by_budget
+    assert resumed.run_seconds > stopped.run_seconds  # the first process's time and its own
     roomy = E.embed(
         tiny.fit, root / "b_roomy", 2, 8, overrides=[*schedule, "watermark.time_budget.minutes=30"], **args
     )

@@ -21,6 +21,15 @@ def test_the_first_step_always_runs_then_steps_are_judged_by_the_recent_ones() -
     assert not clock.room_for_a_step(now=room + 0.01)
 
 
+def test_a_resumed_run_owes_no_first_step_once_its_earlier_processes_spent_the_budget() -> None:
+    # Its clock started at the seconds the checkpoint recorded (here 80 s before this process began at 0).
+    spent = B.BudgetClock(budget_s=100.0, started=-80.0, resumed=True)
+    assert not spent.room_for_a_step(now=0.0)  # 80 + 5 (a checkpoint) + 45 kept > 100
+    roomy = B.BudgetClock(budget_s=1_000.0, started=-80.0, resumed=True, kept_s=30.0)
+    assert roomy.room_for_a_step(now=0.0)
+    assert not roomy.room_for_a_step(now=1_000.0 - 80.0 - 30.0 - B.FIRST_CHECKPOINT_S - B.RESERVE_S + 0.01)
+
+
 @settings(max_examples=50, deadline=None)
 @given(
     times=st.lists(st.floats(0.01, 100.0), min_size=1, max_size=3 * B.RECENT_STEPS),

@@ -401,6 +401,12 @@ def test_a_study_end_to_end_records_failures_and_resumes_after_a_kill(
     ref_rows = json.loads((ref / "results.json").read_text())
     assert [r["status"] for r in ref_rows] == ["pending", "pending", "pending", "done"]
     assert figures(rows[3]) == figures(ref_rows[3])
+    # Its embedding time counts the killed process up to its checkpoint too, not only the resumed one.
+    embed_record = json.loads((study / "cells" / killed / "result.json").read_text())["embed"]
+    assert (
+        embed_record["run_seconds"] > embed_record["seconds"]
+        and rows[3]["embed_s"] == embed_record["run_seconds"]
+    )
 
     done = rows[2]
     assert (done["num_ids"], done["bits"], done["seed"], done["variant"]) == (2, 8, 0, "multinerf")

@@ -118,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
         "min_hamming": result.keys.min_hamming,
         "steps": int(result.steps),
         "seconds": round(result.seconds, 1),
+        "run_seconds": round(result.run_seconds, 1),  # over all its processes, when resumed
         "last_bit_accuracy": last.get("bit_acc"),
         "last_psnr": last.get("psnr"),
     }

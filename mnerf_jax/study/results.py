@@ -273,7 +273,8 @@ def row(spec: StudySpec, cell: grid.Cell, out: Path, fits: dict[str, Any] | None
             values.update(attack_figures(suite, record))
         times = {
             "fit_s": result.get("fit", {}).get("seconds"),
-            "embed_s": embed.get("seconds"),
+            # Over all the embedding's processes where it was resumed (records before run_seconds: its last).
+            "embed_s": embed.get("run_seconds", embed.get("seconds")),
             "evaluate_s": evaluate.get("seconds"),
             "attack_s": sum(r.get("seconds", 0.0) for r in attacks.values()) if attacks else None,
         }

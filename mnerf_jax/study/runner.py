@@ -188,6 +188,7 @@ def _embed(ctx: _Context, cell: grid.Cell, source: Path, wm_dir: Path) -> dict[s
     return {
         "steps": result.steps,
         "stopped_by_budget": result.stopped_by_budget,
+        "run_seconds": round(result.run_seconds, 2),  # the embedding over all its processes
         "params": param_counts(params),
         "config": rundir.read_run_config(wm_dir).to_dict(),  # the config the embedding ran with
     }

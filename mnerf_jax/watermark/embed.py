@@ -251,7 +251,7 @@ def embed(
       stop_at: stop after this many steps in all (a checkpoint is written there).
       on_step: called after every step with ``(step, metrics)``.
     """
-    started = time.perf_counter()  # the time budget's clock (watermark.time_budget.minutes)
+    started = time.perf_counter()  # the run's clock, and its time budget's (watermark.time_budget.minutes)
     out = Path(out_dir)
     source = load_source(source_run)
     scene = source.load_scene(data_path, splits=("train",))
@@ -310,6 +310,7 @@ def embed(
             saved = wm_run.normalised_meta(meta)
             check_compatible(saved, wm_run.fingerprint_config(config), out, wm_run.SECTIONS)
             check_phase3_unchanged(meta, config, out)
+            started -= float(meta.get("run_seconds", 0.0))  # the earlier processes' time counts
             _, tree, meta = wm_run.restore(store, out, optimizer=make_optimizer)
             state = EmbedState(
                 params=jax.tree.map(jnp.asarray, tree["params"]),
@@ -390,8 +391,9 @@ def embed(
             references,
             cache=cache,
             budget_end_db=end_db,
+            run_started=started,
         )
-        result = loop.run(state, stop_at, started)
+        result = loop.run(state, stop_at)
         cfg = loop.config.watermark  # the budget may have sized the field's schedule
         field_done = result.steps == total_steps(cfg) and (stop_at is None or stop_at > result.steps)
         # A field the time budget ended still gets phase 3, in the minutes the budget kept for it.
@@ -483,6 +485,7 @@ def refit_phase(
         result,
         steps=steps,
         seconds=result.seconds + time.perf_counter() - tick,
+        run_seconds=time.perf_counter() - loop.run_started,
         last_metrics=last,
         state=state,
     )

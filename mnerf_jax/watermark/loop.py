@@ -58,7 +58,10 @@ def checkpoint_meta(
     geometry: raymarch.Geometry,
     keys: keys_lib.KeySet,
     budgets: tuple[int, int],
+    run_seconds: float,
 ) -> dict[str, Any]:
+    """The checkpoint's meta; ``run_seconds``: the run's wall time to this checkpoint over all its processes
+    (a resumed run's clock, and so its time budget, goes on from there)."""
     step = int(state.step)
     return {
         "kind": WM_KIND,
@@ -72,6 +75,7 @@ def checkpoint_meta(
         "num_ids": keys.num_ids,
         "bits": keys.bits,
         "budgets": [int(b) for b in budgets],
+        "run_seconds": round(float(run_seconds), 2),
     }
 
 
@@ -86,6 +90,9 @@ class EmbedResult:
     last_metrics: dict[str, float]
     redone_steps: int
     stopped_by_budget: bool = False  # watermark.time_budget.minutes ended it before its schedule did
+    run_seconds: float = (
+        0.0  # wall time of the whole run, earlier processes to their last checkpoint included
+    )
     state: EmbedState | None = None  # the state it ended with
 
 
@@ -121,6 +128,9 @@ class EmbedLoop:
         None  # watermark.schedule.cache_source: the fitted field's samples
     )
     budget_end_db: float | None = None  # where the quality budget ends (objective.budget_end_db)
+    # When the run began on time.perf_counter's scale: this process's start less the seconds its earlier
+    # processes ran to the checkpoint it resumed from.
+    run_started: float = dataclasses.field(default_factory=time.perf_counter)
 
     def __post_init__(self) -> None:
         # What every step passes unchanged, made once rather than per step.
@@ -157,7 +167,8 @@ class EmbedLoop:
         """Checkpoint, then the decoder as it is now, then keys.json tied to that decoder, then progress."""
         step = int(state.step)
         tick = time.perf_counter()
-        meta = checkpoint_meta(self.config, state, self.geometry, self.keys, self.budgets())
+        run_seconds = tick - self.run_started
+        meta = checkpoint_meta(self.config, state, self.geometry, self.keys, self.budgets(), run_seconds)
         self.store.save(step, checkpoint_tree(state, self.geometry), meta)
         self.store.wait()
         wm = self.config.watermark
@@ -180,6 +191,7 @@ class EmbedLoop:
             {
                 "steps_done": step,
                 "phase": meta["phase"],
+                "run_seconds": meta["run_seconds"],
                 "decoder_fingerprint": dec_meta["fingerprint"],
                 **({"quality_budget_db": self.budget_end_db} if self.budget_end_db is not None else {}),
             },
@@ -229,15 +241,18 @@ class EmbedLoop:
         host.update(phase=float(phase), id=float(ids[0]), view=float(view))
         return new_state, host
 
-    def run(self, state: EmbedState, stop_at: int | None, started: float) -> EmbedResult:
+    def run(self, state: EmbedState, stop_at: int | None) -> EmbedResult:
         """Steps from ``state.step`` to the schedule's end (or ``stop_at``), or until the time budget (its
-        clock started at ``started``) has no room for another step; with phase 3 to follow, the schedule is
-        sized to the steps the budget allows (:meth:`field_sizer`)."""
+        clock started at :attr:`run_started`, so a resumed run's earlier processes count) has no room for
+        another step; with phase 3 to follow, the schedule is sized to the steps the budget allows
+        (:meth:`field_sizer`)."""
         cfg = self.config.watermark
         t0 = time.perf_counter()
         if cfg.time_budget.minutes > 0:
             kept = cfg.phase3.reserve_min * 60.0 if cfg.phase3.steps else 0.0
-            self.clock = embed_budget.BudgetClock(cfg.time_budget.minutes * 60.0, started, kept_s=kept)
+            self.clock = embed_budget.BudgetClock(
+                cfg.time_budget.minutes * 60.0, self.run_started, kept_s=kept, resumed=int(state.step) > 0
+            )
         total = total_steps(cfg)
         stop = total if stop_at is None else min(int(stop_at), total)
         start = step = int(state.step)
@@ -309,7 +324,7 @@ class EmbedLoop:
             after = (
                 "phase 3 follows in the minutes kept for it"
                 if self.clock and self.clock.kept_s
-                else "--resume continues it"
+                else "--resume with a larger --time-budget, or none, continues it"
             )
             tqdm.write(
                 f"embed: the time budget ({cfg.time_budget.minutes:g} min) ends the field at step {step} "
@@ -326,5 +341,6 @@ class EmbedLoop:
             last_metrics={**last, "field_scheduled": float(self._horizon)} if sizer is not None else last,
             redone_steps=redone,
             stopped_by_budget=stopped_by_budget,
+            run_seconds=time.perf_counter() - self.run_started,
             state=state,
         )

@@ -6,7 +6,9 @@ largest view's counts, so a step count fixed in advance either overruns the time
 With a budget, the loop runs the configured schedule and, before each step, stops when that step and the last
 checkpoint would no longer end inside the budget, judging a step's cost by the steps just run. Without
 phase 3 the schedule is not resized: a field the budget stops after N steps is exactly the first N steps of
-the unbudgeted run (``--steps N`` repeats it), and ``--resume`` continues it. With phase 3
+the unbudgeted run (``--steps N`` repeats it), and ``--resume`` with a larger budget, or none, continues it.
+The budget is the run's, not the process's: a resumed run's clock starts at the seconds its checkpoint
+recorded, so a killed run resumed ends about where it would have ended uninterrupted. With phase 3
 (``watermark.phase3.steps``) the loop keeps ``phase3.reserve_min`` of the budget for it, and sizes the field's
 schedule to the steps its share allows (:class:`ScheduleSizer`, ``field_scheduled`` in the run's metrics):
 the quality budget's ramp is laid over them, so that it has tightened when the field ends, while the
@@ -48,6 +50,8 @@ class BudgetClock:
     step_seconds: list[float] = dataclasses.field(default_factory=list)
     checkpoint_s: float = FIRST_CHECKPOINT_S
     kept_s: float = 0.0  # kept free by the field's steps for what follows them (phase 3)
+    # ``started`` includes a resumed run's earlier processes: the first step is taken only if time is left.
+    resumed: bool = False
 
     def record_step(self, seconds: float) -> None:
         self.step_seconds = [*self.step_seconds, float(seconds)][-RECENT_STEPS:]
@@ -57,11 +61,12 @@ class BudgetClock:
         return expected_step_seconds(self.step_seconds)
 
     def room_for_a_step(self, now: float) -> bool:
-        """True while one more step and the final checkpoint end within the budget (always before the first
-        step has been timed: a run takes at least one step)."""
+        """True while one more step and the final checkpoint end within the budget; before the first step has
+        been timed, always for a fresh run (a run takes at least one step), and for a resumed one while the
+        budget has any time left."""
         step_s = self.expected_step_s()
         if step_s is None:
-            return True
+            return not self.resumed or self.room_for(self.kept_s, now)
         return self.room_for(step_s + self.kept_s, now)
 
     def room_for(self, seconds: float, now: float) -> bool:
