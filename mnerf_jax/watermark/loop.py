@@ -90,9 +90,8 @@ class EmbedResult:
     last_metrics: dict[str, float]
     redone_steps: int
     stopped_by_budget: bool = False  # watermark.time_budget.minutes ended it before its schedule did
-    run_seconds: float = (
-        0.0  # wall time of the whole run, earlier processes to their last checkpoint included
-    )
+    # Wall time of the whole run: this process's, and its earlier processes' to the checkpoint it resumed.
+    run_seconds: float = 0.0
     state: EmbedState | None = None  # the state it ended with
 
 
